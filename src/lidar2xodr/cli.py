@@ -1,0 +1,111 @@
+"""The `lidar2xodr` command line: one thin typer command per pipeline stage.
+
+Commands import their stage lazily so `--help` stays fast. Bad input raises InputError, which
+becomes one line on stderr and exit code 2 (never a traceback).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, Optional, TypeVar
+
+import typer
+from rich.console import Console
+
+from lidar2xodr import __version__
+from lidar2xodr.errors import InputError, OutputError
+
+app = typer.Typer(
+    name="lidar2xodr",
+    help="LiDAR test drives to ASAM OpenDRIVE maps and OpenSCENARIO traffic, without odometry.",
+    rich_markup_mode="rich",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+console = Console(stderr=True)
+out = Console()
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def _clean_errors(fn: F) -> F:
+    """Turn expected failures into one line and exit code 2."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(*args, **kwargs)
+        except (InputError, OutputError) as exc:
+            console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
+            raise typer.Exit(2) from None
+        except KeyboardInterrupt:
+            console.print("[bold red]interrupted[/]")
+            raise typer.Exit(130) from None
+
+    return wrapper  # type: ignore[return-value]
+
+
+def _version(value: bool) -> None:
+    if value:
+        out.print(f"lidar2xodr {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def main(
+    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Show the version."),
+) -> None:
+    """LiDAR test drives to ASAM OpenDRIVE maps and OpenSCENARIO traffic."""
+
+
+def write_json(path: Path, data: dict[str, Any]) -> None:
+    from lidar2xodr.fileio import write_text
+
+    write_text(path, json.dumps(data, indent=2, sort_keys=True) + "\n")
+
+
+ConfigOpt = typer.Option(None, "--config", "-c", help="YAML configuration (see README).")
+
+
+@app.command()
+@_clean_errors
+def compare(
+    generated: Path = typer.Argument(..., help="The generated .xodr."),
+    reference: Path = typer.Argument(..., help="The reference .xodr (ground truth)."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the metrics as JSON."),
+    config: Optional[Path] = ConfigOpt,
+) -> None:
+    """The paper's lateral distance between two maps: RMSE, mean, sigma, lane count, widths, coverage."""
+    from lidar2xodr.config import Config
+    from lidar2xodr.evaluation import compare_maps, print_metrics
+
+    metrics = compare_maps(generated, reference, Config.load(config).evaluation)
+    print_metrics(metrics, out)
+    if json_out:
+        write_json(json_out, metrics)
+
+
+@app.command()
+@_clean_errors
+def check(
+    path: Path = typer.Argument(..., help="An .xodr map or an .xosc scenario."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the verdict as JSON."),
+) -> None:
+    """ASAM quality checker plus our continuity checks. Exit code 1 when the file has errors."""
+    from lidar2xodr.check import check_file, print_check
+
+    result = check_file(path)
+    if json_out:
+        write_json(json_out, result)
+    print_check(result, out)
+    if not result["ok"]:
+        raise typer.Exit(1)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(app())

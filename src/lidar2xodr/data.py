@@ -1,0 +1,137 @@
+"""Plain data passed between the pipeline stages.
+
+Every stage reads and writes these small dataclasses of numpy arrays, so each stage can be run,
+tested, timed and inspected alone. Frames: vehicle frame is ISO 8855 (x forward, y left, z up);
+the world frame is a local east-north-up frame whose origin is stored with its geodetic position.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class Scan:
+    """One LiDAR scan in the sensor frame of the vehicle (x forward, y left, z up).
+
+    `intensity` is normalised to 0..1 (the reader divides by the sensor's own scale).
+    `times` are absolute per-point times in seconds (or None); `stamp` is the scan time.
+    """
+
+    index: int
+    stamp: float
+    xyz: np.ndarray  # (N, 3) float64
+    intensity: np.ndarray  # (N,) float32 in 0..1
+    times: np.ndarray | None = None  # (N,) float64
+
+
+@dataclass
+class Trajectory:
+    """Poses of the vehicle frame in the world frame: T_world_vehicle at each time."""
+
+    times: np.ndarray  # (M,)
+    poses: np.ndarray  # (M, 4, 4)
+
+    def __len__(self) -> int:
+        return len(self.times)
+
+    @property
+    def positions(self) -> np.ndarray:
+        return self.poses[:, :3, 3]
+
+
+@dataclass
+class GeoOrigin:
+    """Geodetic position of the world-frame origin (None when the drive has no GNSS)."""
+
+    lat: float | None = None
+    lon: float | None = None
+    alt: float = 0.0
+    proj: str | None = None  # PROJ string of the local frame, written as OpenDRIVE geoReference
+
+
+@dataclass
+class SensorInfo:
+    """What a reader knows about the sensor: preset name, mount pose and nominal range."""
+
+    name: str = "unknown"
+    mount: np.ndarray = field(default_factory=lambda: np.eye(4))  # T_vehicle_sensor
+    max_range_m: float = 200.0
+    intensity_scale: float = 1.0  # raw value that means 100 % reflectivity
+
+
+@dataclass
+class GroundPlanes:
+    """Per-scan RANSAC ground plane, kept for superelevation.
+
+    `normals_world` are unit normals (pointing up) in the world frame; `points_world` the point
+    of the plane below the vehicle origin; `times` the scan times.
+    """
+
+    times: np.ndarray  # (S,)
+    normals_world: np.ndarray  # (S, 3)
+    points_world: np.ndarray  # (S, 3)
+
+
+@dataclass
+class MarkingCloud:
+    """Output of extraction: accumulated lane-marking points in the world frame."""
+
+    xyz: np.ndarray  # (N, 3) float64
+    intensity: np.ndarray  # (N,) float32
+    scan_index: np.ndarray  # (N,) int32
+    time: np.ndarray  # (N,) float64
+    planes: GroundPlanes
+    trajectory: Trajectory
+    origin: GeoOrigin = field(default_factory=GeoOrigin)
+
+
+@dataclass
+class Candidate:
+    """A candidate line: ordered cluster centres chained by SearchMark and Combine."""
+
+    id: int
+    centers: np.ndarray  # (n, 3) ordered along the unified direction
+    directions: np.ndarray  # (n, 2) unit directions (stabilised)
+    cluster_ids: np.ndarray  # (n,) ids of the clusters the centres come from
+    superline: int = -1
+
+
+@dataclass
+class Boundary:
+    """One lane boundary (a superline), ordered along the road.
+
+    `t` is the signed lateral offset from the reference line (left positive) at the reference
+    line's stations `s`; NaN where the boundary does not exist (lane drop, entry/exit lane).
+    """
+
+    id: int
+    t: np.ndarray  # (M,) aligned with LaneModel.s
+    mark_type: str = "solid"  # solid | broken
+    mark_width: float = 0.15
+    dash_length: float | None = None
+    gap_length: float | None = None
+
+
+@dataclass
+class LaneSection:
+    """A stretch with a constant set of boundaries (ordered left to right)."""
+
+    s_start: float
+    s_end: float
+    boundary_ids: list[int]
+
+
+@dataclass
+class LaneModel:
+    """Output of the lanes stage: reference line, boundaries, sections. Read by the exporter."""
+
+    s: np.ndarray  # (M,) stations along the reference line
+    reference: np.ndarray  # (M, 3) xyz of the reference line (road centre), z from the markings
+    boundaries: list[Boundary]
+    sections: list[LaneSection]
+    candidates: list[Candidate] = field(default_factory=list)
+    origin: GeoOrigin = field(default_factory=GeoOrigin)
+    warnings: list[str] = field(default_factory=list)
