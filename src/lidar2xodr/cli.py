@@ -11,7 +11,7 @@ import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Optional, TypeVar
+from typing import Any, TypeVar
 
 import typer
 from rich.console import Console
@@ -77,8 +77,8 @@ ConfigOpt = typer.Option(None, "--config", "-c", help="YAML configuration (see R
 def compare(
     generated: Path = typer.Argument(..., help="The generated .xodr."),
     reference: Path = typer.Argument(..., help="The reference .xodr (ground truth)."),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the metrics as JSON."),
-    config: Optional[Path] = ConfigOpt,
+    json_out: Path | None = typer.Option(None, "--json", help="Write the metrics as JSON."),
+    config: Path | None = ConfigOpt,
 ) -> None:
     """The paper's lateral distance between two maps: RMSE, mean, sigma, lane count, widths, coverage."""
     from lidar2xodr.config import Config
@@ -94,7 +94,7 @@ def compare(
 @_clean_errors
 def check(
     path: Path = typer.Argument(..., help="An .xodr map or an .xosc scenario."),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the verdict as JSON."),
+    json_out: Path | None = typer.Option(None, "--json", help="Write the verdict as JSON."),
 ) -> None:
     """ASAM quality checker plus our continuity checks. Exit code 1 when the file has errors."""
     from lidar2xodr.check import check_file, print_check
