@@ -107,5 +107,51 @@ def check(
         raise typer.Exit(1)
 
 
+@app.command()
+@_clean_errors
+def build(
+    drive: Path = typer.Argument(..., help="A drive: drive directory, scan folder, KITTI, bag/MCAP, aiMotive."),
+    output: Path = typer.Option(..., "--output", "-o", help="The OpenDRIVE map to write."),
+    report: Path | None = typer.Option(None, "--report", help="Write an HTML report with pictures here."),
+    odometry: str | None = typer.Option(None, "--odometry", help="gnss | lidar | auto (default auto)."),
+    data_format: str | None = typer.Option(None, "--format", help="Force the reader (see README)."),
+    scenario: Path | None = typer.Option(None, "--scenario", help="Also write the OpenSCENARIO here."),
+    keep_intermediate: Path | None = typer.Option(
+        None, "--keep-intermediate", help="Keep markings.ply and lanes.json in this folder."
+    ),
+    allow_invalid: bool = typer.Option(False, "--allow-invalid", help="Write the map even if it fails check."),
+    config: Path | None = ConfigOpt,
+) -> None:
+    """The whole pipeline: extract markings, build lanes, export a checked OpenDRIVE map."""
+    from lidar2xodr.config import Config
+    from lidar2xodr.pipeline import BuildPipeline
+
+    cfg = Config.load(config)
+    if odometry:
+        if odometry not in ("auto", "gnss", "lidar"):
+            raise InputError("--odometry", f"unknown value {odometry!r} (gnss, lidar or auto)")
+        cfg = cfg.model_copy(update={"extraction": cfg.extraction.model_copy(update={"odometry": odometry})})
+    result = BuildPipeline(
+        drive, output, cfg, data_format=data_format, report_dir=report, scenario=scenario,
+        keep_intermediate=keep_intermediate, allow_invalid=allow_invalid, console=console,
+    ).run()
+    from lidar2xodr.pipeline import print_summary
+
+    print_summary(result, out)
+
+
+@app.command()
+@_clean_errors
+def demo(
+    out_dir: Path = typer.Option(Path("demo-out"), "--out", help="Where the demo writes everything."),
+    length_m: float = typer.Option(3000.0, "--length-m", help="Length of the simulated drive."),
+    seed: int = typer.Option(0, "--seed"),
+) -> None:
+    """Simulate a drive on the project's own demo road, build the map, check it, compare with the truth."""
+    from lidar2xodr.pipeline import run_demo
+
+    run_demo(out_dir, length_m=length_m, seed=seed, console=console, out=out)
+
+
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(app())

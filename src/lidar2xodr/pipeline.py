@@ -1,0 +1,231 @@
+"""The whole method as one pipeline: extract -> markings -> lanes -> OpenDRIVE (-> OpenSCENARIO).
+
+`BuildPipeline.run()` streams the drive through each stage with a progress bar, times every
+stage, checks the written map and only then moves it into place: a map that fails `check` is
+written only with `allow_invalid` (nothing half-written either way).
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from lidar2xodr.config import Config
+from lidar2xodr.data import LaneModel, MarkingCloud
+from lidar2xodr.errors import InputError
+
+
+@dataclass
+class BuildResult:
+    """What a build produced and how long each stage took."""
+
+    map_path: Path
+    scenario_path: Path | None = None
+    report_path: Path | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+    check: dict[str, Any] = field(default_factory=dict)
+    summary: dict[str, Any] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+
+
+def progress_bar(console: Console) -> Progress:
+    return Progress(
+        TextColumn("[bold blue]{task.description:<12}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=console,
+        transient=False,
+    )
+
+
+class BuildPipeline:
+    """Runs `build`: a drive in, a checked OpenDRIVE map (and optionally an OpenSCENARIO) out."""
+
+    def __init__(
+        self,
+        drive: Path,
+        out: Path,
+        config: Config | None = None,
+        data_format: str | None = None,
+        report_dir: Path | None = None,
+        scenario: Path | None = None,
+        keep_intermediate: Path | None = None,
+        allow_invalid: bool = False,
+        reference: Path | None = None,
+        console: Console | None = None,
+    ) -> None:
+        self.drive = Path(drive)
+        self.out = Path(out)
+        self.config = config or Config()
+        self.data_format = data_format
+        self.report_dir = report_dir
+        self.scenario = scenario
+        self.keep = keep_intermediate
+        self.allow_invalid = allow_invalid
+        self.reference = reference
+        self.console = console or Console(stderr=True)
+        self.timings: dict[str, float] = {}
+
+    @contextmanager
+    def _stage(self, name: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        yield
+        self.timings[name] = time.perf_counter() - t0
+
+    def extract(self) -> MarkingCloud:
+        from lidar2xodr.datasets import open_dataset
+        from lidar2xodr.extraction import extract_markings
+
+        dataset = open_dataset(self.drive, self.data_format)
+        with self._stage("extract"), progress_bar(self.console) as bar:
+            task = bar.add_task("extract", total=len(dataset))
+            cloud = extract_markings(dataset, self.config.extraction, progress=lambda n=1: bar.advance(task, n))
+        if len(cloud.xyz) == 0:
+            raise InputError(self.drive, "no lane markings found in the drive (nothing bright on the ground)")
+        return cloud
+
+    def lanes(self, cloud: MarkingCloud) -> LaneModel:
+        from lidar2xodr.lanes import build_lane_model
+        from lidar2xodr.markings import find_candidates
+
+        with self._stage("markings"):
+            candidates = find_candidates(cloud.xyz, self.config.markings)
+        with self._stage("lanes"):
+            model = build_lane_model(cloud, candidates, self.config.lanes)
+        return model
+
+    def run(self) -> BuildResult:
+        from lidar2xodr.check import check_file
+        from lidar2xodr.export_opendrive import export_opendrive
+
+        cloud = self.extract()
+        model = self.lanes(cloud)
+        with tempfile.TemporaryDirectory(prefix=".lidar2xodr-", dir=self.out.parent) as tmp:
+            tmp_map = Path(tmp) / self.out.name
+            with self._stage("export"):
+                summary = export_opendrive(model, cloud.planes, self.config.export, tmp_map)
+            with self._stage("check"):
+                verdict = check_file(tmp_map)
+            if not verdict["ok"] and not self.allow_invalid:
+                raise InputError(
+                    self.drive,
+                    f"the generated map fails the checks ({_verdict_line(verdict)}); "
+                    "nothing written (use --allow-invalid to write it anyway)",
+                )
+            if self.keep:
+                self._keep(cloud, model)
+            self.out.parent.mkdir(parents=True, exist_ok=True)
+            shutil.move(str(tmp_map), self.out)
+        result = BuildResult(map_path=self.out, timings=self.timings, check=verdict, warnings=list(model.warnings))
+        result.summary = {
+            "length_m": float(model.s[-1] - model.s[0]) if len(model.s) else 0.0,
+            "boundaries": len(model.boundaries),
+            "sections": [len(sec.boundary_ids) - 1 for sec in model.sections],
+            "marking_points": int(len(cloud.xyz)),
+            "scans": int(len(cloud.planes.times)),
+            "export": summary.__dict__ if hasattr(summary, "__dict__") else str(summary),
+        }
+        if self.scenario:
+            with self._stage("scenario"):
+                result.scenario_path = self._scenario(cloud)
+        metrics = None
+        if self.reference:
+            from lidar2xodr.evaluation import compare_maps
+
+            with self._stage("compare"):
+                metrics = compare_maps(self.out, self.reference, self.config.evaluation)
+            result.summary["metrics"] = metrics
+        if self.report_dir:
+            from lidar2xodr.report import write_report
+
+            with self._stage("report"):
+                result.report_path = write_report(self.report_dir, cloud=cloud, model=model, map_path=self.out,
+                                                  check=verdict, timings=self.timings, summary=result.summary,
+                                                  scenario=result.scenario_path, metrics=metrics)
+        return result
+
+    def _scenario(self, cloud: MarkingCloud) -> Path:
+        from lidar2xodr.export_scenario import export_scenario
+        from lidar2xodr.tracks import load_tracks
+
+        assert self.scenario is not None
+        tracks = load_tracks(self.drive, cloud.trajectory)
+        export_scenario(cloud.trajectory, tracks, self.out, self.scenario, self.config)
+        return self.scenario
+
+    def _keep(self, cloud: MarkingCloud, model: LaneModel) -> None:
+        from lidar2xodr.lanes import save_lanes
+        from lidar2xodr.markings_io import save_markings
+
+        assert self.keep is not None
+        save_markings(cloud, self.keep / "markings.ply")
+        save_lanes(model, self.keep / "lanes.json")
+
+
+def _verdict_line(verdict: dict[str, Any]) -> str:
+    asam = verdict.get("asam", {})
+    cont = verdict.get("continuity", {})
+    return (
+        f"ASAM errors {asam.get('errors', '?')}, largest leap {cont.get('max_leap_m', float('nan')):.4f} m, "
+        f"largest kink {cont.get('max_kink_rad', float('nan')):.4f} rad"
+    )
+
+
+def print_summary(result: BuildResult, console: Console) -> None:
+    """The end-of-build summary: length, lanes, time per stage, checks."""
+    from rich.table import Table
+
+    table = Table(title=f"built {result.map_path}", show_header=False)
+    s = result.summary
+    table.add_row("length", f"{s.get('length_m', 0.0):.0f} m")
+    table.add_row("lanes per section", ", ".join(str(n) for n in s.get("sections", [])))
+    table.add_row("marking points / scans", f"{s.get('marking_points', 0):,} / {s.get('scans', 0):,}")
+    for stage, sec in result.timings.items():
+        table.add_row(f"time {stage}", f"{sec:.2f} s")
+    table.add_row("check", ("ok: " if result.check.get("ok") else "FAILED: ") + _verdict_line(result.check))
+    metrics = s.get("metrics")
+    if metrics:
+        table.add_row("boundaries RMSE / mean / sigma",
+                      "{rmse_m:.3f} / {mean_m:.3f} / {std_m:.3f} m".format(**metrics["boundaries"]))
+        table.add_row("centre line RMSE", "{rmse_m:.3f} m".format(**metrics["centerline"]))
+        table.add_row("lane count agreement", f"{metrics['lane_count_agreement']:.3f}")
+        table.add_row("lane width bias / sigma",
+                      "{bias_m:+.3f} / {std_m:.3f} m".format(**metrics["lane_width"]))
+    for w in result.warnings:
+        table.add_row("warning", w)
+    if result.scenario_path:
+        table.add_row("scenario", str(result.scenario_path))
+    if result.report_path:
+        table.add_row("report", str(result.report_path))
+    console.print(table)
+
+
+def run_demo(out_dir: Path, length_m: float, seed: int, console: Console, out: Console) -> BuildResult:
+    """`make demo`: simulate a drive on the project's own road, build, check, compare with the truth."""
+    from lidar2xodr.demo_road import write_demo_road
+    from lidar2xodr.simulation import SimOptions, simulate
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    truth = write_demo_road(out_dir / "demo_road.xodr")
+    drive = out_dir / "drive"
+    console.print(f"[bold]1/2[/] simulating a {length_m:.0f} m drive on {truth}")
+    simulate(truth, drive, SimOptions(length_m=length_m, seed=seed), console=console)
+    console.print(f"[bold]2/2[/] building the map from {drive}")
+    result = BuildPipeline(
+        drive, out_dir / "map.xodr", report_dir=out_dir / "report", scenario=out_dir / "map.xosc",
+        reference=truth, console=console,
+    ).run()
+    print_summary(result, out)
+    out.print(f"open the report: {result.report_path}")
+    return result
