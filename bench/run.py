@@ -1,0 +1,157 @@
+"""Benchmarks: accuracy of simulate -> build -> compare on the shared maps, and speed of each stage.
+
+Run with `make bench` (or `.venv/bin/python bench/run.py [--quick] [--maps NAME ...]`). Results go
+to bench-out/results.json and a Markdown table printed at the end, which is pasted into
+BENCHMARKS.md together with this command. Uses the CLI as a user would.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = Path(os.environ.get("LIDAR2XODR_SHARED_DATA", REPO.parent / "shared" / "data"))
+CLI = [str(REPO / ".venv" / "bin" / "lidar2xodr")]
+
+# name -> (path relative to shared/data/maps, lane-count target)
+ACCURACY_MAPS = {
+    "AB_RQ31_Straight": ("asam/AB_RQ31_Straight.xodr", 0.99),
+    "AB_RQ31_R2000": ("asam/AB_RQ31_R2000.xodr", 0.99),
+    "AB_RQ31_Crest": ("asam/AB_RQ31_Crest.xodr", 0.99),
+    "AB_RQ36_Straight": ("asam/AB_RQ36_Straight.xodr", 0.99),
+    "simple_highway": ("esmini/simple_highway.xodr", 0.99),
+    "curves_elevation": ("esmini/curves_elevation.xodr", 0.99),
+    "highway_exit": ("esmini/highway_exit.xodr", 0.95),
+    "highway_merge": ("esmini/highway_merge.xodr", 0.95),
+    "highway_split": ("esmini/highway_split.xodr", 0.95),
+    "Ex_Entry_Exit": ("asam/Ex_Entry_Exit.xodr", 0.95),
+}
+
+
+def run(cmd: list[str]) -> tuple[int, float, str]:
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "COLUMNS": "200"})
+    return proc.returncode, time.perf_counter() - t0, (proc.stdout + proc.stderr)[-2000:]
+
+
+def bench_map(name: str, xodr: Path, out: Path, length_m: float, lane_target: float) -> dict:
+    drive = out / name / "drive"
+    row: dict = {"map": name, "length_m": length_m}
+    rc, t_sim, log = run(CLI + ["simulate", str(xodr), str(drive), "--length-m", str(length_m), "--seed", "1"])
+    row["simulate_s"] = round(t_sim, 1)
+    if rc != 0:
+        row["error"] = "simulate: " + log.strip().splitlines()[-1]
+        return row
+    xodr_out = out / name / "map.xodr"
+    rc, t_build, log = run(CLI + ["build", str(drive), "-o", str(xodr_out), "--report", str(out / name / "report")])
+    row["build_s"] = round(t_build, 1)
+    if rc != 0:
+        row["error"] = "build: " + log.strip().splitlines()[-1]
+        return row
+    metrics_path = out / name / "metrics.json"
+    rc, _, log = run(CLI + ["compare", str(xodr_out), str(xodr), "--json", str(metrics_path)])
+    if not metrics_path.exists():
+        row["error"] = "compare: " + log.strip().splitlines()[-1]
+        return row
+    m = json.loads(metrics_path.read_text())
+    row.update(
+        boundaries_rmse=m["boundaries"]["rmse_m"],
+        centerline_rmse=m["centerline"]["rmse_m"],
+        lane_count=m["lane_count_agreement"],
+        width_bias=m["lane_width"]["bias_m"],
+        width_std=m["lane_width"]["std_m"],
+        coverage=m["coverage"],
+        eval_length_m=m["boundaries"]["eval_length_m"],
+        lane_target=lane_target,
+    )
+    row["meets_targets"] = bool(
+        row["boundaries_rmse"] <= 0.10 and row["centerline_rmse"] <= 0.10 and row["lane_count"] >= lane_target
+        and abs(row["width_bias"]) <= 0.05 and row["width_std"] <= 0.08
+    )
+    return row
+
+
+def bench_speed(out: Path, length_m: float) -> dict:
+    """Simulator and extraction speed on the project's demo road, default sensor."""
+    sys.path.insert(0, str(REPO / "src"))
+    from lidar2xodr.demo_road import write_demo_road
+
+    road = write_demo_road(out / "speed" / "demo_road.xodr")
+    drive = out / "speed" / "drive"
+    rc, t_sim, log = run(CLI + ["simulate", str(road), str(drive), "--length-m", str(length_m), "--seed", "0"])
+    row: dict = {"length_m": length_m, "simulate_s": round(t_sim, 1)}
+    if rc != 0:
+        row["error"] = log[-500:]
+        return row
+    poses = (drive / "poses.csv").read_text().splitlines()[1:]
+    duration = float(poses[-1].split(",")[0]) - float(poses[0].split(",")[0])
+    rc, t_ext, log = run(CLI + ["extract", str(drive), "-o", str(out / "speed" / "markings.ply")])
+    row.update(drive_duration_s=round(duration, 1), extract_s=round(t_ext, 1),
+               extract_realtime_factor=round(duration / t_ext, 1) if rc == 0 else None)
+    if rc != 0:
+        row["error"] = log[-500:]
+    return row
+
+
+def bench_aimotive(out: Path) -> dict:
+    sample = SHARED / "lidar" / "aimotive_highway_sample"
+    if not sample.is_dir():
+        return {"skipped": f"{sample} not found"}
+    xodr = out / "aimotive" / "map.xodr"
+    rc, t, log = run(CLI + ["build", str(sample), "-o", str(xodr), "--odometry", "lidar",
+                            "--report", str(out / "aimotive" / "report")])
+    row: dict = {"build_s": round(t, 1), "rc": rc}
+    if rc == 0:
+        rc2, _, log2 = run(CLI + ["check", str(xodr), "--json", str(out / "aimotive" / "check.json")])
+        row["check"] = json.loads((out / "aimotive" / "check.json").read_text()) if rc2 in (0, 1) else log2[-300:]
+    else:
+        row["error"] = log.strip().splitlines()[-1] if log.strip() else "?"
+    return row
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--out", type=Path, default=REPO / "bench-out")
+    ap.add_argument("--length-m", type=float, default=2000.0, help="simulated length per accuracy map")
+    ap.add_argument("--speed-length-m", type=float, default=10000.0)
+    ap.add_argument("--maps", nargs="*", default=None)
+    ap.add_argument("--skip-speed", action="store_true")
+    args = ap.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    results: dict = {"command": " ".join(sys.argv)}
+    if not args.skip_speed:
+        results["speed"] = bench_speed(args.out, args.speed_length_m)
+        print(json.dumps(results["speed"]), flush=True)
+    rows = []
+    if (SHARED / "maps").is_dir():
+        for name, (rel, target) in ACCURACY_MAPS.items():
+            if args.maps and name not in args.maps:
+                continue
+            row = bench_map(name, SHARED / "maps" / rel, args.out, args.length_m, target)
+            print(json.dumps(row), flush=True)
+            rows.append(row)
+    else:
+        print(f"shared maps not found at {SHARED}: accuracy benchmark skipped")
+    results["accuracy"] = rows
+    results["aimotive"] = bench_aimotive(args.out)
+    print(json.dumps(results["aimotive"], default=str)[:2000], flush=True)
+    (args.out / "results.json").write_text(json.dumps(results, indent=2, default=str))
+    cols = ["map", "boundaries_rmse", "centerline_rmse", "lane_count", "width_bias", "width_std", "coverage",
+            "eval_length_m", "meets_targets", "error"]
+    print("\n| " + " | ".join(cols) + " |\n|" + "---|" * len(cols))
+    for r in rows:
+        print("| " + " | ".join(_fmt(r.get(c, "")) for c in cols) + " |")
+
+
+def _fmt(v: object) -> str:
+    return f"{v:.3f}" if isinstance(v, float) else str(v)
+
+
+if __name__ == "__main__":
+    main()
