@@ -1,0 +1,263 @@
+"""`lidar2xodr check`: what a simulator user needs to know before loading a map or a scenario.
+
+Two parts:
+
+* `asam`: the official ASAM quality checker (asam-qc-opendrive for .xodr, asam-qc-openscenarioxml for
+  .xosc) run as a subprocess from its own virtual environment (it pins numpy<2). The environment is
+  `$LIDAR2XODR_QC_VENV` or `<project root>/.venv-qc` (project root = the parent of src/). Issue levels
+  follow the ASAM result format: 1 = error, 2 = warning, 3 = information. Checkers the tool skips
+  (e.g. every rule newer than the file's OpenDRIVE version) are counted, not hidden, and checkers that
+  crash are listed as issues of level "internal" without failing the verdict (the rule was not
+  evaluated, the file is not proven wrong).
+* `continuity` (.xodr only; the ASAM checker does not test it): per road, the largest position leap (m)
+  and heading kink (rad) between the end of each plan-view geometry and the start of the next, and for
+  every paramPoly3 the difference between its declared length and the arc length of the curve it
+  describes (integrated numerically; for pRange=normalized the declared length is the only arc-length
+  information a reader has, so a mismatch distorts every s coordinate on that piece).
+
+Verdict: `ok` is False when the ASAM checker reports at least one error, or a leap exceeds
+`LEAP_LIMIT_M` (1 cm) or a kink exceeds `KINK_LIMIT_RAD` (10 mrad). Why these limits: a 1 cm gap
+already makes lane borders jump visibly in readers that snap to the next piece, and 10 mrad is the
+heading error a sub-centimetre gap of a 1 m lever arm produces. Warnings and length mismatches are
+reported but do not fail the verdict.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from lxml import etree
+from rich.console import Console
+from rich.table import Table
+
+from lidar2xodr.errors import InputError
+
+LEAP_LIMIT_M = 0.01
+KINK_LIMIT_RAD = 0.01
+QC_ENV_VAR = "LIDAR2XODR_QC_VENV"
+QC_TIMEOUT_S = 900
+ARC_STEP_M = 0.05
+_LEVELS = {1: "error", 2: "warning", 3: "information"}
+_CHECKERS = {".xodr": ("qc_opendrive", "xodrBundle"), ".xosc": ("qc_openscenario", "xoscBundle")}
+
+
+def find_qc_venv() -> Path:
+    """The virtual environment holding the ASAM checkers; InputError with a one-line fix when absent."""
+    env = os.environ.get(QC_ENV_VAR)
+    venv = Path(env) if env else Path(__file__).resolve().parents[2] / ".venv-qc"
+    if not (venv / "bin" / "python").exists():
+        raise InputError(venv, "ASAM quality checker environment not found; run `make setup` "
+                         f"(or point {QC_ENV_VAR} at a venv with asam-qc-opendrive)")
+    return venv
+
+
+def _write_config(cfg: Path, input_file: Path, bundle: str, result: Path) -> None:
+    root = etree.Element("Config")
+    etree.SubElement(root, "Param", name="InputFile", value=str(input_file))
+    bundle_el = etree.SubElement(root, "CheckerBundle", application=bundle)
+    etree.SubElement(bundle_el, "Param", name="resultFile", value=str(result))
+    cfg.write_bytes(etree.tostring(root, xml_declaration=True, encoding="UTF-8", pretty_print=True))
+
+
+def _issue_message(issue: etree._Element) -> dict[str, Any]:
+    level = int(issue.get("level", "1"))
+    text = issue.get("description", "")
+    row = None
+    xpath = None
+    for loc in issue.iter("Locations"):
+        desc = loc.get("description", "")
+        if desc and desc != text:
+            text = f"{text}: {desc}" if text and not text.startswith("Issue flagging") else desc
+        fl = loc.find("FileLocation")
+        if row is None and fl is not None and fl.get("row") is not None:
+            row = int(fl.get("row"))
+        xl = loc.find("XMLLocation")
+        if xpath is None and xl is not None:
+            xpath = xl.get("xpath")
+    out: dict[str, Any] = {"level": _LEVELS.get(level, str(level)), "rule": issue.get("ruleUID", ""),
+                           "message": text}
+    if row is not None:
+        out["row"] = row
+    if xpath is not None:
+        out["xpath"] = xpath
+    return out
+
+
+def parse_result(xqar: Path) -> dict[str, Any]:
+    """Counts and messages from an ASAM result file (.xqar)."""
+    try:
+        root = etree.parse(str(xqar)).getroot()
+    except (OSError, etree.XMLSyntaxError) as exc:
+        raise InputError(xqar, f"unreadable ASAM checker result: {exc}") from None
+    issues: list[dict[str, Any]] = []
+    status = {"completed": 0, "skipped": 0, "error": 0}
+    for checker in root.iter("Checker"):
+        st = checker.get("status", "")
+        status[st] = status.get(st, 0) + 1
+        if st == "error":
+            issues.append({"level": "internal", "rule": checker.get("checkerId", ""),
+                           "message": f"checker crashed: {checker.get('summary', '')}"})
+        for issue in checker.iter("Issue"):
+            msg = _issue_message(issue)
+            msg["checker"] = checker.get("checkerId", "")
+            issues.append(msg)
+    counts = {name: sum(i["level"] == name for i in issues) for name in ("error", "warning", "information")}
+    return {
+        "errors": counts["error"],
+        "warnings": counts["warning"],
+        "information": counts["information"],
+        "checkers_completed": status["completed"],
+        "checkers_skipped": status["skipped"],
+        "checkers_failed": status["error"],
+        "issues": issues,
+    }
+
+
+def run_asam_checker(path: Path, venv: Path | None = None) -> dict[str, Any]:
+    """Run the ASAM checker bundle matching the file's suffix and return its parsed result."""
+    module, bundle = _CHECKERS[path.suffix.lower()]
+    venv = venv or find_qc_venv()
+    with tempfile.TemporaryDirectory(prefix="lidar2xodr-qc-") as tmp:
+        cfg, result = Path(tmp) / "config.xml", Path(tmp) / "result.xqar"
+        _write_config(cfg, path.resolve(), bundle, result)
+        try:
+            proc = subprocess.run([str(venv / "bin" / "python"), "-m", module, "-c", str(cfg)], cwd=tmp,
+                                  capture_output=True, text=True, timeout=QC_TIMEOUT_S, check=False)
+        except subprocess.TimeoutExpired:
+            raise InputError(path, f"the ASAM checker did not finish within {QC_TIMEOUT_S} s") from None
+        except OSError as exc:
+            raise InputError(venv, f"cannot start the ASAM checker: {exc}") from None
+        if not result.exists():
+            tail = (proc.stderr or proc.stdout).strip().splitlines()[-1:] or ["no output"]
+            raise InputError(path, f"the ASAM checker ({module}) failed: {tail[0]}")
+        out = parse_result(result)
+    out["checker"] = module
+    return out
+
+
+def _arc_length(geom: Any) -> float:
+    """Arc length of the curve a geometry traces over ds in [0, length] (Richardson-refined polyline)."""
+    n = max(16, math.ceil(geom.length / ARC_STEP_M))
+    n += n % 2
+
+    def polyline(m: int) -> float:
+        ds = np.linspace(0.0, geom.length, m + 1)
+        x, y, _ = geom.eval(ds)
+        return float(np.hypot(np.diff(x), np.diff(y)).sum())
+
+    fine, coarse = polyline(n), polyline(n // 2)
+    return (4.0 * fine - coarse) / 3.0
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def continuity(odr: Any) -> dict[str, Any]:
+    """Largest geometry-to-geometry leap and kink, and paramPoly3 length errors, over all roads."""
+    worst: dict[str, dict[str, Any]] = {}
+    over: list[str] = []
+
+    def note(key: str, value: float, road: str, index: int, s: float) -> None:
+        if key not in worst or value > worst[key]["value"]:
+            worst[key] = {"road": road, "geometry": index, "s": round(float(s), 4), "value": float(value)}
+
+    for road_id, road in odr.roads.items():
+        geoms = list(road.geometries)
+        road_bad = False
+        for i, geom in enumerate(geoms):
+            if str(geom.kind).lower() == "parampoly3" and geom.length > 0:
+                err = abs(_arc_length(geom) - geom.length)
+                note("length", err, road_id, i, geom.s)
+                note("length_rel", err / geom.length, road_id, i, geom.s)
+            if i + 1 == len(geoms):
+                continue
+            nxt = geoms[i + 1]
+            (ex, ey, eh), (sx, sy, sh) = (
+                (float(v[0]) for v in g.eval(np.array([ds]))) for g, ds in ((geom, geom.length), (nxt, 0.0))
+            )
+            leap = math.hypot(sx - ex, sy - ey)
+            kink = abs(_wrap(sh - eh))
+            note("leap", leap, road_id, i, nxt.s)
+            note("kink", kink, road_id, i, nxt.s)
+            road_bad |= leap > LEAP_LIMIT_M or kink > KINK_LIMIT_RAD
+        if road_bad:
+            over.append(road_id)
+    top = {k: v["value"] for k, v in worst.items()}
+    return {
+        "max_leap_m": top.get("leap", 0.0),
+        "max_kink_rad": top.get("kink", 0.0),
+        "max_length_error_m": top.get("length", 0.0),
+        "max_length_error_rel": top.get("length_rel", 0.0),
+        "worst": {k: worst[k] for k in sorted(worst)},
+        "roads_over_limit": over,
+        "leap_limit_m": LEAP_LIMIT_M,
+        "kink_limit_rad": KINK_LIMIT_RAD,
+    }
+
+
+def check_file(path: Path) -> dict[str, Any]:
+    """Check an .xodr (ASAM + continuity) or an .xosc (ASAM); the result always holds `ok`."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in _CHECKERS:
+        raise InputError(path, "expected an OpenDRIVE (.xodr) or OpenSCENARIO (.xosc) file")
+    if not path.is_file():
+        raise InputError(path, "file not found")
+    venv = find_qc_venv()
+    result: dict[str, Any] = {"file": str(path), "kind": suffix[1:]}
+    if suffix == ".xodr":
+        from lidar2xodr.opendrive import OpenDriveMap
+
+        result["continuity"] = continuity(OpenDriveMap.load(path))
+    result["asam"] = run_asam_checker(path, venv)
+    reasons = []
+    if result["asam"]["errors"]:
+        reasons.append(f"{result['asam']['errors']} ASAM error(s)")
+    cont = result.get("continuity")
+    if cont and cont["max_leap_m"] > LEAP_LIMIT_M:
+        reasons.append(f"geometry leap {cont['max_leap_m']:.4f} m > {LEAP_LIMIT_M} m")
+    if cont and cont["max_kink_rad"] > KINK_LIMIT_RAD:
+        reasons.append(f"heading kink {cont['max_kink_rad']:.4f} rad > {KINK_LIMIT_RAD} rad")
+    result["reasons"] = reasons
+    result["ok"] = not reasons
+    return result
+
+
+def print_check(result: dict[str, Any], console: Console, max_issues: int = 20) -> None:
+    """A short human-readable verdict: counts, continuity, the first issues."""
+    asam = result["asam"]
+    table = Table(title=f"check {result['file']}", show_header=True)
+    table.add_column("item")
+    table.add_column("value", justify="right")
+    table.add_row(f"ASAM errors ({asam['checker']})", str(asam["errors"]))
+    table.add_row("ASAM warnings", str(asam["warnings"]))
+    table.add_row("ASAM checkers completed / skipped / crashed",
+                  f"{asam['checkers_completed']} / {asam['checkers_skipped']} / {asam['checkers_failed']}")
+    cont = result.get("continuity")
+    if cont:
+        table.add_row("largest geometry leap [m]", f"{cont['max_leap_m']:.4f}")
+        table.add_row("largest heading kink [rad]", f"{cont['max_kink_rad']:.4f}")
+        table.add_row("largest paramPoly3 length error [m]", f"{cont['max_length_error_m']:.4f}")
+    console.print(table)
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for issue in asam["issues"]:
+        groups.setdefault((issue["level"], issue["message"]), []).append(issue)
+    order = {"error": 0, "internal": 1, "warning": 2, "information": 3}
+    keys = sorted(groups, key=lambda k: (order.get(k[0], 9), -len(groups[k])))
+    for level, message in keys[:max_issues]:
+        first = groups[(level, message)][0]
+        where = f"row {first['row']}" if "row" in first else first.get("xpath", "")
+        more = len(groups[(level, message)]) - 1
+        where += f" and {more} more place(s)" if more else ""
+        console.print(f"  {level}: {message}" + (f" ({where})" if where else ""), highlight=False, soft_wrap=True)
+    if len(keys) > max_issues:
+        console.print(f"  ... {len(keys) - max_issues} more kind(s) of issue (see --json)")
+    verdict = "[bold green]OK[/]" if result["ok"] else "[bold red]NOT OK[/]: " + "; ".join(result["reasons"])
+    console.print(verdict)
