@@ -71,6 +71,17 @@ class ExportConfig(_Section):
     endpoint_weight: float = Field(10.0, description="ours: weight of the first and last marking in the fit")
     opendrive_minor: int = Field(8, description="OpenDRIVE 1.x; >= 7 so the ASAM checker applies its rules")
     road_name: str = Field("lidar2xodr", description="name of the written road")
+    road_type: Literal["unknown", "rural", "motorway", "town"] = Field(
+        "motorway", description="ours: OpenDRIVE road type (the paper's drives are motorways)")
+    lane_record_m: float = Field(25.0, description="ours: length of the laneOffset/width cubic records")
+    taper_length_m: float = Field(60.0, description="ours: an appearing lane whose markings start at full width "
+                                  "opens from 0 over this length (ends likewise)")
+    right_shoulder_m: float = Field(0.0, description="ours: width of a 'shoulder' lane outside the right edge "
+                                    "line; 0 = none (not measured, so off by default)")
+    left_border_m: float = Field(0.0, description="ours: width of a 'border' lane left of the leftmost line; 0 = none")
+    superelevation_median_scans: int = Field(9, description="ours: running median over the per-scan roll angles")
+    superelevation_smoothing: float = Field(1.0, description="ours: P-spline penalty of the superelevation fit")
+    plane_max_offset_m: float = Field(15.0, description="ours: ground planes farther from the reference are ignored")
 
 
 class EvaluationConfig(_Section):
