@@ -92,12 +92,39 @@ class EvaluationConfig(_Section):
                           "carriageway edge are outside the evaluated part (see README)")
 
 
+class ScenarioConfig(_Section):
+    """OpenSCENARIO of the recorded traffic: track cleaning, association, replay and manoeuvres."""
+
+    osc_minor_version: int = Field(2, ge=2, le=3, description="ours: OpenSCENARIO 1.x (1.2: widest support)")
+    map_sample_step_m: float = Field(0.5, description="ours: sampling of the map for z and lane lookup")
+    off_map_margin_m: float = Field(0.5, description="ours: this far outside the outer border = off the map")
+    vertex_tolerance_m: float = Field(0.05, description="ours: polyline vertices kept until replay error < this")
+    vertex_yaw_tolerance_rad: float = Field(0.02, description="ours: same for the heading")
+    min_track_samples: int = Field(5, description="ours: shorter tracks are dropped")
+    min_track_duration_s: float = Field(0.5, description="ours: shorter tracks are dropped")
+    max_gap_s: float = Field(1.0, description="ours: a track is split where no sample arrives for longer")
+    spike_m: float = Field(2.0, description="ours: samples this far from the running median (5 samples) are spikes")
+    max_spike_share: float = Field(0.3, description="ours: a larger share of spikes drops the track (jumpy)")
+    max_speed_mps: float = Field(80.0, description="ours: faster implied motion between samples splits a track")
+    gate_m: float = Field(3.0, description="ours: association gate (doubled for 1-sample tracks)")
+    heading_min_speed_mps: float = Field(1.0, description="ours: slower: box yaw; faster: motion direction")
+    spawn_tolerance_s: float = Field(0.2, description="ours: tracks starting this early go into Init")
+    lane_change_dwell_s: float = Field(1.0, description="ours: a lane must be held this long to count (hysteresis)")
+    cut_in_range_m: float = Field(50.0, description="task: a cut-in/out happens within this distance ahead of the ego")
+    ego_dims_m: tuple[float, float, float] = Field((4.9, 1.9, 1.5), description="ours: ego length, width, height")
+    ego_center_x_m: float = Field(0.0, description="ours: box centre ahead of the ego pose origin")
+    gnss_smoothing_s: float = Field(2.0, description="ours: time scale of GNSS correction of dead reckoning")
+    class_map: dict[str, str] = Field(default_factory=dict, description="raw class -> category, e.g. {'7': 'car'}")
+    drop_off_map: bool = Field(False, description="ours: drop tracks that never touch the map (default: keep, warn)")
+
+
 class Config(_Section):
     extraction: ExtractionConfig = ExtractionConfig()
     markings: MarkingsConfig = MarkingsConfig()
     lanes: LanesConfig = LanesConfig()
     export: ExportConfig = ExportConfig()
     evaluation: EvaluationConfig = EvaluationConfig()
+    scenario: ScenarioConfig = ScenarioConfig()
 
     @classmethod
     def load(cls, path: str | Path | None) -> Config:
