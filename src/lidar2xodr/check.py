@@ -15,7 +15,8 @@ Two parts:
   describes (integrated numerically; for pRange=normalized the declared length is the only arc-length
   information a reader has, so a mismatch distorts every s coordinate on that piece).
 
-Verdict: `ok` is False when the ASAM checker reports at least one error, or a leap exceeds
+Verdict: `ok` is False when the ASAM checker reports at least one error, when the project's
+OpenDRIVE reader cannot evaluate the geometry (`continuity.error`), or a leap exceeds
 `LEAP_LIMIT_M` (1 cm) or a kink exceeds `KINK_LIMIT_RAD` (10 mrad). Why these limits: a 1 cm gap
 already makes lane borders jump visibly in readers that snap to the next piece, and 10 mrad is the
 heading error a sub-centimetre gap of a 1 m lever arm produces. Warnings and length mismatches are
@@ -212,18 +213,22 @@ def check_file(path: Path) -> dict[str, Any]:
         raise InputError(path, "file not found")
     venv = find_qc_venv()
     result: dict[str, Any] = {"file": str(path), "kind": suffix[1:]}
-    if suffix == ".xodr":
-        from lidar2xodr.opendrive import OpenDriveMap
-
-        result["continuity"] = continuity(OpenDriveMap.load(path))
     result["asam"] = run_asam_checker(path, venv)
     reasons = []
     if result["asam"]["errors"]:
         reasons.append(f"{result['asam']['errors']} ASAM error(s)")
-    cont = result.get("continuity")
-    if cont and cont["max_leap_m"] > LEAP_LIMIT_M:
+    if suffix == ".xodr":
+        from lidar2xodr.opendrive import OpenDriveMap
+
+        try:
+            result["continuity"] = continuity(OpenDriveMap.load(path))
+        except InputError as exc:
+            result["continuity"] = {"error": str(exc)}
+            reasons.append(f"unreadable geometry: {exc.problem}")
+    cont = result.get("continuity", {})
+    if cont.get("max_leap_m", 0.0) > LEAP_LIMIT_M:
         reasons.append(f"geometry leap {cont['max_leap_m']:.4f} m > {LEAP_LIMIT_M} m")
-    if cont and cont["max_kink_rad"] > KINK_LIMIT_RAD:
+    if cont.get("max_kink_rad", 0.0) > KINK_LIMIT_RAD:
         reasons.append(f"heading kink {cont['max_kink_rad']:.4f} rad > {KINK_LIMIT_RAD} rad")
     result["reasons"] = reasons
     result["ok"] = not reasons
@@ -240,8 +245,10 @@ def print_check(result: dict[str, Any], console: Console, max_issues: int = 20) 
     table.add_row("ASAM warnings", str(asam["warnings"]))
     table.add_row("ASAM checkers completed / skipped / crashed",
                   f"{asam['checkers_completed']} / {asam['checkers_skipped']} / {asam['checkers_failed']}")
-    cont = result.get("continuity")
-    if cont:
+    cont = result.get("continuity", {})
+    if "error" in cont:
+        table.add_row("geometry", "unreadable")
+    elif cont:
         table.add_row("largest geometry leap [m]", f"{cont['max_leap_m']:.4f}")
         table.add_row("largest heading kink [rad]", f"{cont['max_kink_rad']:.4f}")
         table.add_row("largest paramPoly3 length error [m]", f"{cont['max_length_error_m']:.4f}")

@@ -1,0 +1,135 @@
+"""`check`: the real ASAM checkers plus our geometry continuity verdict."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from lidar2xodr.check import KINK_LIMIT_RAD, LEAP_LIMIT_M, check_file, find_qc_venv
+from lidar2xodr.cli import app
+from lidar2xodr.errors import InputError
+
+HEADER = '<header revMajor="1" revMinor="8" name="t" version="1" date="2024-01-01T00:00:00"/>'
+LANES = """<lanes><laneSection s="0"><center><lane id="0" type="none" level="false"/></center>
+<right><lane id="-1" type="driving" level="false"><width sOffset="0" a="3.5" b="0" c="0" d="0"/></lane></right>
+</laneSection></lanes>"""
+
+
+def _map(tmp_path: Path, geometries: str, length: float, name: str = "m.xodr") -> Path:
+    """A one-road OpenDRIVE 1.8 map with the given <geometry> records and one right driving lane."""
+    xml = (f'<?xml version="1.0" encoding="UTF-8"?>\n<OpenDRIVE>{HEADER}'
+           f'<road id="1" length="{length}" junction="-1" rule="RHT"><planView>{geometries}</planView>'
+           f"{LANES}</road></OpenDRIVE>\n")
+    path = tmp_path / name
+    path.write_text(xml, encoding="utf-8")
+    return path
+
+
+def _line(s: float, x: float, y: float, hdg: float, length: float) -> str:
+    return f'<geometry s="{s}" x="{x}" y="{y}" hdg="{hdg}" length="{length}"><line/></geometry>'
+
+
+def _ppoly(s: float, x: float, length: float, b_u: float) -> str:
+    return (f'<geometry s="{s}" x="{x}" y="0" hdg="0" length="{length}"><paramPoly3 aU="0" bU="{b_u}" cU="0" '
+            'dU="0" aV="0" bV="0" cV="0" dV="0" pRange="normalized"/></geometry>')
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _needs_checker() -> None:
+    try:
+        find_qc_venv()
+    except InputError as exc:
+        pytest.skip(f"ASAM checker environment missing: {exc}")
+
+
+def test_real_highway_map_is_clean(shared_data: Path) -> None:
+    res = check_file(shared_data / "maps" / "asam" / "Ex_Entry_Exit.xodr")
+    assert res["asam"]["checker"] == "qc_opendrive"
+    assert res["asam"]["errors"] == 0
+    assert res["asam"]["warnings"] > 0  # the real checker flags its redundant elevation records
+    assert res["asam"]["warnings"] == sum(i["level"] == "warning" for i in res["asam"]["issues"])
+    assert res["asam"]["checkers_completed"] > 15  # OpenDRIVE 1.8: the rules are really applied
+    assert res["continuity"]["max_leap_m"] < 1e-3 and res["continuity"]["max_kink_rad"] < 1e-3
+    assert res["ok"] is True
+
+
+def test_schema_error_of_a_real_map_fails(shared_data: Path) -> None:
+    res = check_file(shared_data / "maps" / "maliput" / "ParametricCubicCurveComplexRoad.xodr")
+    assert res["asam"]["errors"] >= 1
+    assert any("rule" in i["message"] and i["level"] == "error" for i in res["asam"]["issues"])
+    assert res["ok"] is False
+
+
+def test_five_centimetre_leap_fails(tmp_path: Path) -> None:
+    path = _map(tmp_path, _line(0, 0, 0, 0, 50) + _line(50, 50, 0.05, 0, 50), 100)
+    res = check_file(path)
+    assert res["asam"]["errors"] == 0  # schema-valid: only our continuity check sees the gap
+    assert res["continuity"]["max_leap_m"] == pytest.approx(0.05, abs=1e-9)
+    assert res["continuity"]["max_kink_rad"] == pytest.approx(0.0, abs=1e-12)
+    assert res["continuity"]["roads_over_limit"] == ["1"]
+    assert res["continuity"]["worst"]["leap"]["s"] == 50.0
+    assert res["ok"] is False and any("leap" in r for r in res["reasons"])
+
+
+def test_heading_kink_fails_and_tiny_one_passes(tmp_path: Path) -> None:
+    kinked = _map(tmp_path, _line(0, 0, 0, 0, 50) + _line(50, 50, 0, 0.02, 50), 100, "k.xodr")
+    res = check_file(kinked)
+    assert res["continuity"]["max_kink_rad"] == pytest.approx(0.02, abs=1e-9)
+    assert res["ok"] is False
+    fine = _map(tmp_path, _line(0, 0, 0, 0, 50) + _line(50, 50, 0.004, 0.005, 50), 100, "f.xodr")
+    res = check_file(fine)
+    assert res["continuity"]["max_leap_m"] == pytest.approx(0.004, abs=1e-9)
+    assert res["continuity"]["max_kink_rad"] == pytest.approx(0.005, abs=1e-9)
+    assert 0.004 < LEAP_LIMIT_M and 0.005 < KINK_LIMIT_RAD
+    assert res["ok"] is True
+
+
+def test_parampoly3_length_mismatch_is_measured(tmp_path: Path) -> None:
+    # The curve is 100 m long (u = 100 p) but declares 101 m; the second piece is consistent.
+    path = _map(tmp_path, _ppoly(0, 0, 101, 100) + _ppoly(101, 100, 40, 40), 141)
+    cont = check_file(path)["continuity"]
+    assert cont["max_length_error_m"] == pytest.approx(1.0, abs=1e-6)
+    assert cont["max_length_error_rel"] == pytest.approx(1.0 / 101, abs=1e-8)
+    assert cont["worst"]["length"]["geometry"] == 0
+    assert cont["max_leap_m"] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_valid_scenario(shared_data: Path) -> None:
+    res = check_file(shared_data / "scenarios" / "asam" / "CutIn.xosc")
+    assert res["kind"] == "xosc" and "continuity" not in res
+    assert res["asam"]["checker"] == "qc_openscenario"
+    assert res["asam"]["checkers_completed"] >= 5
+    assert res["asam"]["errors"] == 0 and res["ok"] is True
+
+
+def test_cli_writes_json_and_exits_1_when_not_ok(tmp_path: Path) -> None:
+    path = _map(tmp_path, _line(0, 0, 0, 0, 50) + _line(50, 50, 0.05, 0, 50), 100)
+    out = tmp_path / "verdict.json"
+    res = CliRunner().invoke(app, ["check", str(path), "--json", str(out)])
+    assert res.exit_code == 1, res.output
+    data = json.loads(out.read_text())
+    assert data["ok"] is False and data["continuity"]["max_leap_m"] == pytest.approx(0.05)
+    assert {"errors", "warnings", "issues"} <= set(data["asam"])
+
+
+def test_unreadable_map_is_reported_not_raised(tmp_path: Path) -> None:
+    path = tmp_path / "broken.xodr"
+    path.write_text(f'<OpenDRIVE>{HEADER}<road id="1" length="10" junction="-1"><planView/></road></OpenDRIVE>')
+    res = check_file(path)
+    assert res["ok"] is False and "error" in res["continuity"] and res["asam"]["errors"] > 0
+
+
+def test_bad_input_and_missing_checker(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    with pytest.raises(InputError, match="expected an OpenDRIVE"):
+        check_file(tmp_path / "map.txt")
+    with pytest.raises(InputError, match="not found"):
+        check_file(tmp_path / "absent.xodr")
+    path = _map(tmp_path, _line(0, 0, 0, 0, 10), 10)
+    monkeypatch.setenv("LIDAR2XODR_QC_VENV", str(tmp_path / "no-venv"))
+    with pytest.raises(InputError, match="make setup"):
+        check_file(path)
+    res = CliRunner().invoke(app, ["check", str(path)])
+    assert res.exit_code == 2 and "make setup" in res.output and "Traceback" not in res.output
