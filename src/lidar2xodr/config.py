@@ -90,6 +90,10 @@ class EvaluationConfig(_Section):
     sample_step_m: float = Field(0.5, description="ours: uniform sampling of both maps")
     near_m: float = Field(3.0, description="ours: reference samples farther than this from the generated map's "
                           "carriageway edge are outside the evaluated part (see README)")
+    heading_tolerance_deg: float = Field(45.0, description="ours: lines are matched only to lines whose travel "
+                                         "direction differs by at most this (keeps the opposite carriageway out)")
+    lane_count_min_width_m: float = Field(1.75, description="ours: narrower driving lanes (opening or closing "
+                                          "tapers) are not counted; half the paper's 3.5 m lane")
 
 
 class ScenarioConfig(_Section):
