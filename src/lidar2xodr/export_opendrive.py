@@ -1,0 +1,719 @@
+"""OpenDRIVE export of a LaneModel (paper Alg. 3, made continuous by construction).
+
+Reference line (paper): the road centre of LaneModel is split into equal pieces of at most
+`piece_length_m` (n = ceil(L / 100 m), so no short stub is left at the end). Each piece is fitted
+as a paramPoly3 over its own stations plus a look-back and look-ahead of `look_fraction` of the
+piece length (used for the fit only), with the parameter p = station / piece length and the
+samples nearest p = 0 and p = 1 weighted by `endpoint_weight`. The fit frame U/V is rotated by
+the paper's heading (angle of the mean of the piece's reference points, seen from its first point,
+towards X); the cubic fit is rotation-equivariant, so this only conditions the numbers.
+
+Beyond the paper:
+- Continuity by construction: every piece after the first is a constrained least-squares cubic
+  whose start point is the evaluated end of the written previous piece and whose start tangent is
+  parallel to its end tangent (C(0) fixed, C'(0) = lambda * T, lambda free); the look-ahead makes
+  the end tangent agree with the next piece's data. x, y, hdg of the next piece are computed from
+  the written (repr-exact) numbers, so leaps are ~1e-12 m and kinks ~1e-16 rad. The written hdg is
+  the start tangent (aU = aV = bV = 0).
+- pRange="normalized" and length = arc length of the fitted curve (32-point Gauss-Legendre); the
+  next piece's s = previous s + that length. Coordinates stay in the local world frame of the
+  LaneModel (origin at the drive's start); the header's geoReference places it on the earth.
+- Lanes of a one-way carriageway in right-hand traffic: the reference line stays on the road
+  centre (paper) and a <laneOffset> moves lane 0 onto the leftmost boundary, so every driving
+  lane is a right lane (-1, -2, ... from left to right). laneOffset and lane widths are C2 cubic
+  B-splines (least squares with a tiny P-spline penalty) written as one cubic record every
+  ~`lane_record_m`; the boundaries' world points are projected onto the written reference line
+  first, so borders follow the boundaries even where the fitted centre deviates by millimetres.
+- Lane sections follow LaneModel.sections. Lanes are linked (predecessor and successor, both ways)
+  when their lateral extents overlap at the section change. A lane without predecessor starts at
+  width 0 and one without successor ends at width 0; where its markings start at full width it
+  opens along a smoothstep over `taper_length_m`. Linked lanes continue with the same width.
+- Road marks: every lane's outer border and the centre lane (leftmost boundary) carry the
+  boundary's solid/broken mark with its width, laneChange none/both, and for broken lines with a
+  known dash/gap an explicit <type><line length space/>.
+- Elevation: C2 cubic spline of the reference z with one record per planView piece (paper: cubic
+  per piece, no weighting, no look-ahead; continuity in value and slope is ours). Superelevation:
+  roll of each scan's ground plane about the road (positive = left side up, as OpenDRIVE),
+  running median over scans, smoothing cubic spline with one record per piece; 0 without planes.
+- Optional lanes outside the measured lines: a 'shoulder' right of the rightmost line
+  (`right_shoulder_m`) and a 'border' left of the leftmost (`left_border_m`); off by default
+  because they are not measured.
+- Header: OpenDRIVE 1.`opendrive_minor`, name, vendor, bounding box, geoReference from
+  model.origin.proj (else a tmerc at the origin's lat/lon, else a tmerc at 0,0 with a comment
+  saying the frame is local). The date is the first ground plane's time when that is a plausible
+  UNIX time, otherwise omitted, so the same input always gives the same bytes.
+
+Written with scenariogeneration. Patches after writing (lxml), because scenariogeneration cannot
+express them: the header date (it writes now()), north/south/east/west (it writes 0), a vendor,
+the geoReference as CDATA and the comment for a local frame. The paramPoly3 length is passed
+through a subclass so scenariogeneration does not replace it by its own quadrature.
+"""
+
+from __future__ import annotations
+
+import math
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+from lxml import etree
+from scenariogeneration import xodr
+from scipy.interpolate import BSpline, PPoly
+from scipy.ndimage import median_filter
+from scipy.spatial import cKDTree
+
+from lidar2xodr.config import ExportConfig
+from lidar2xodr.data import Boundary, GroundPlanes, LaneModel
+from lidar2xodr.errors import InputError
+from lidar2xodr.fileio import write_bytes
+
+_GL_X, _GL_W = np.polynomial.legendre.leggauss(32)
+_GL_X = 0.5 * (_GL_X + 1.0)
+_GL_W = 0.5 * _GL_W
+_GEOMETRY_SMOOTH = 1e-6  # P-spline penalty that only bridges data gaps (geometry, widths, elevation)
+_LINK_MIN_OVERLAP_M = 0.3
+_WHERE = "lane model"
+_LOCAL_TMERC = "+proj=tmerc +lat_0=0 +lon_0=0 +k=1 +x_0=0 +y_0=0 +ellps=WGS84 +units=m +no_defs"
+
+
+@dataclass
+class ExportSummary:
+    """What the exporter measured on the bytes it wrote (plain numbers, JSON-ready)."""
+
+    length_m: float
+    pieces: int
+    lane_sections: int
+    max_leap_m: float
+    max_kink_rad: float
+    max_length_error_m: float
+    max_reference_dev_m: float
+    max_border_dev_m: float
+
+
+# --------------------------------------------------------------------------------------------
+# the written reference line
+
+
+@dataclass
+class _Plan:
+    """paramPoly3 pieces exactly as written: start s, x, y, hdg, length and local u/v coefficients."""
+
+    s: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    hdg: np.ndarray
+    length: np.ndarray
+    u: np.ndarray  # (n, 4) a, b, c, d
+    v: np.ndarray
+
+    def derivs(self, k: np.ndarray, p: np.ndarray, order: int) -> np.ndarray:
+        """World-frame d^order C / dp^order of pieces k at p, shape (m, 2)."""
+        if order == 0:
+            basis = np.stack([np.ones_like(p), p, p**2, p**3], axis=1)
+        elif order == 1:
+            basis = np.stack([np.zeros_like(p), np.ones_like(p), 2 * p, 3 * p**2], axis=1)
+        else:
+            basis = np.stack([np.zeros_like(p), np.zeros_like(p), 2 * np.ones_like(p), 6 * p], axis=1)
+        lu = np.sum(self.u[k] * basis, axis=1)
+        lv = np.sum(self.v[k] * basis, axis=1)
+        c, s = np.cos(self.hdg[k]), np.sin(self.hdg[k])
+        out = np.stack([c * lu - s * lv, s * lu + c * lv], axis=1)
+        if order == 0:
+            out += np.stack([self.x[k], self.y[k]], axis=1)
+        return out
+
+    def arc(self, k: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """Arc length from p = 0 to p on pieces k (Gauss-Legendre)."""
+        q = p[:, None] * _GL_X[None, :]
+        kk = np.repeat(k, len(_GL_X))
+        speed = np.linalg.norm(self.derivs(kk, q.ravel(), 1), axis=1).reshape(q.shape)
+        return p * (speed @ _GL_W)
+
+    def project(self, pts: np.ndarray, k: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Foot points of `pts` on the curve by Newton from a guess (k, p): returns station s and left offset t."""
+        k, p = k.copy(), p.astype(np.float64).copy()
+        n = len(self.s)
+        for _ in range(12):
+            r = self.derivs(k, p, 0) - pts
+            d1 = self.derivs(k, p, 1)
+            d2 = self.derivs(k, p, 2)
+            f = np.sum(r * d1, axis=1)
+            fp = np.sum(d1 * d1, axis=1) + np.sum(r * d2, axis=1)
+            p = p - f / np.where(np.abs(fp) > 1e-9, fp, 1e-9)
+            up = (p > 1.0) & (k < n - 1)
+            down = (p < 0.0) & (k > 0)
+            p[up] = (p[up] - 1.0) * self.length[k[up]] / self.length[k[up] + 1]
+            k[up] += 1
+            p[down] = 1.0 + p[down] * self.length[k[down]] / self.length[k[down] - 1]
+            k[down] -= 1
+        d1 = self.derivs(k, p, 1)
+        normal = np.stack([-d1[:, 1], d1[:, 0]], axis=1) / np.linalg.norm(d1, axis=1)[:, None]
+        t = np.sum((pts - self.derivs(k, p, 0)) * normal, axis=1)
+        return self.s[k] + self.arc(k, p), t
+
+
+def _local_end(u: np.ndarray, v: np.ndarray, x: float, y: float, h: float) -> tuple[float, float, float]:
+    """End point and heading of a written paramPoly3 (as a reader evaluates it)."""
+    eu, ev = float(np.sum(u)), float(np.sum(v))
+    du, dv = float(u[1] + 2 * u[2] + 3 * u[3]), float(v[1] + 2 * v[2] + 3 * v[3])
+    c, s = math.cos(h), math.sin(h)
+    return x + c * eu - s * ev, y + s * eu + c * ev, h + math.atan2(dv, du)
+
+
+def _wrap(a: float) -> float:
+    return float((a + math.pi) % (2 * math.pi) - math.pi)
+
+
+def _fit_piece(p: np.ndarray, q: np.ndarray, w: np.ndarray, tangent: np.ndarray | None,
+               span: float) -> np.ndarray:
+    """Weighted cubic C(p) = c0 + c1 p + c2 p^2 + c3 p^3 through local points q (origin = start).
+
+    With `tangent` the start is fixed at the origin and c1 = lambda * tangent (lambda > 0 free).
+    Returns the (4, 2) coefficients.
+    """
+    sw = np.sqrt(w)[:, None]
+    if tangent is None:
+        vander = np.stack([np.ones_like(p), p, p**2, p**3], axis=1) * sw
+        coef = np.linalg.lstsq(vander, q * sw, rcond=None)[0]
+        return coef
+    zero = np.zeros_like(p)
+    rows_x = np.stack([tangent[0] * p, p**2, zero, p**3, zero], axis=1)
+    rows_y = np.stack([tangent[1] * p, zero, p**2, zero, p**3], axis=1)
+    design = np.vstack([rows_x * sw, rows_y * sw])
+    rhs = np.concatenate([q[:, 0] * sw[:, 0], q[:, 1] * sw[:, 0]])
+    lam, c2x, c2y, c3x, c3y = np.linalg.lstsq(design, rhs, rcond=None)[0]
+    if lam < 0.2 * span:  # degenerate data: keep the tangent at the piece's nominal speed
+        lam = span
+        design = design[:, 1:]
+        rhs = rhs - lam * np.concatenate([tangent[0] * p * sw[:, 0], tangent[1] * p * sw[:, 0]])
+        c2x, c2y, c3x, c3y = np.linalg.lstsq(design, rhs, rcond=None)[0]
+    return np.array([[0.0, 0.0], lam * tangent, [c2x, c2y], [c3x, c3y]])
+
+
+def _fit_plan(s: np.ndarray, xy: np.ndarray, breaks: np.ndarray, cfg: ExportConfig) -> _Plan:
+    """Paper Alg. 3 with look-back/look-ahead and endpoint weights, continuous by construction."""
+    look = cfg.look_fraction * cfg.piece_length_m
+    rows: list[tuple[float, float, float, float, float, np.ndarray, np.ndarray]] = []
+    start: tuple[float, float, float] | None = None
+    s_odr = 0.0
+    for k in range(len(breaks) - 1):
+        a, b = float(breaks[k]), float(breaks[k + 1])
+        span = b - a
+        m = (s >= a - look - 1e-9) & (s <= b + look + 1e-9)
+        p = (s[m] - a) / span
+        pts = xy[m]
+        w = np.ones(len(p))
+        w[np.argmin(np.abs(p))] = cfg.endpoint_weight
+        w[np.argmin(np.abs(p - 1.0))] = cfg.endpoint_weight
+        inside = (p >= 0) & (p <= 1)
+        origin = np.array(start[:2]) if start is not None else pts[inside][0]
+        mean = pts[inside].mean(axis=0) - pts[inside][0]
+        theta = math.atan2(mean[1], mean[0])  # paper: heading of the mean of the piece's points
+        rot = np.array([[math.cos(theta), math.sin(theta)], [-math.sin(theta), math.cos(theta)]])
+        q = (pts - origin) @ rot.T
+        tangent = None
+        if start is not None:
+            tangent = np.array([math.cos(start[2] - theta), math.sin(start[2] - theta)])
+        coef = _fit_piece(p, q, w, tangent, span)
+        if start is None:
+            c0_world = origin + coef[0] @ rot
+            hdg = theta + math.atan2(coef[1, 1], coef[1, 0])
+            x0, y0 = float(c0_world[0]), float(c0_world[1])
+        else:
+            x0, y0, hdg = start
+        hdg = _wrap(hdg)
+        back = hdg - theta
+        rot_back = np.array([[math.cos(back), math.sin(back)], [-math.sin(back), math.cos(back)]])
+        local = coef @ rot_back.T
+        u = np.array([0.0, float(np.hypot(*local[1])), float(local[2, 0]), float(local[3, 0])])
+        v = np.array([0.0, 0.0, float(local[2, 1]), float(local[3, 1])])
+        speed = np.hypot(u[1] + 2 * u[2] * _GL_X + 3 * u[3] * _GL_X**2, v[1] + 2 * v[2] * _GL_X + 3 * v[3] * _GL_X**2)
+        length = float(speed @ _GL_W)
+        rows.append((s_odr, x0, y0, hdg, length, u, v))
+        start = _local_end(u, v, x0, y0, hdg)
+        s_odr = s_odr + length
+    cols = list(zip(*rows, strict=True))
+    return _Plan(*(np.array(c, dtype=np.float64) for c in cols[:5]), np.array(cols[5]), np.array(cols[6]))
+
+
+# --------------------------------------------------------------------------------------------
+# smoothing splines written as cubic records
+
+
+@dataclass
+class _Records:
+    """Cubic records a + b ds + c ds^2 + d ds^3 from each start (what OpenDRIVE stores)."""
+
+    starts: np.ndarray
+    coeffs: np.ndarray  # (k, 4)
+
+    def __call__(self, s: np.ndarray, der: int = 0) -> np.ndarray:
+        i = np.clip(np.searchsorted(self.starts, s, side="right") - 1, 0, len(self.starts) - 1)
+        ds = s - self.starts[i]
+        a, b, c, d = self.coeffs[i].T
+        if der == 0:
+            return a + ds * (b + ds * (c + ds * d))
+        return b + ds * (2 * c + 3 * ds * d)
+
+
+def _spline_records(x: np.ndarray, y: np.ndarray, breaks: np.ndarray, smooth: float = _GEOMETRY_SMOOTH,
+                    constraints: tuple[tuple[float, int, float], ...] = ()) -> _Records:
+    """Least-squares cubic B-spline (C2) on `breaks` with a P-spline penalty and equality constraints.
+
+    Each constraint is (x, derivative order, value). Returns one record per break interval.
+    """
+    knots = np.r_[[breaks[0]] * 3, breaks, [breaks[-1]] * 3]
+    nb = len(knots) - 4
+    basis = BSpline(knots, np.eye(nb), 3, extrapolate=True)
+    design = basis(np.clip(x, breaks[0], breaks[-1]))
+    gram = design.T @ design
+    diff2 = np.diff(np.eye(nb), 2, axis=0) if nb > 2 else np.zeros((0, nb))
+    mu = smooth * max(len(x), 1) / nb
+    lhs = gram + mu * diff2.T @ diff2 + 1e-12 * np.eye(nb)
+    rhs = design.T @ y
+    if constraints:
+        crow = np.array([basis.derivative(o)(xc) if o else basis(xc) for xc, o, _ in constraints])
+        cval = np.array([val for _, _, val in constraints])
+        kkt = np.block([[lhs, crow.T], [crow, np.zeros((len(cval), len(cval)))]])
+        sol = np.linalg.lstsq(kkt, np.concatenate([rhs, cval]), rcond=None)[0]
+        coef = sol[:nb]
+    else:
+        coef = np.linalg.solve(lhs, rhs)
+    pp = PPoly.from_spline(BSpline(knots, coef, 3))
+    keep = np.flatnonzero(np.diff(pp.x) > 1e-9)
+    return _merge_records(_Records(pp.x[keep].copy(), pp.c[::-1, keep].T.copy()), float(breaks[-1]))
+
+
+def _merge_records(rec: _Records, end: float, tol: float = 1e-6) -> _Records:
+    """Flatten records that vary less than `tol` and drop records that continue the previous polynomial.
+
+    The ASAM checker flags consecutive records describing (nearly) the same polynomial as redundant;
+    numerical noise of 1e-8 m on a constant lane width would otherwise produce exactly that.
+    Values change by less than `tol` (1 um).
+    """
+    ends = np.r_[rec.starts[1:], end]
+    coeffs = rec.coeffs.copy()
+    for i in range(len(rec.starts)):
+        ds = np.linspace(0.0, ends[i] - rec.starts[i], 9)
+        vals = _Records(np.zeros(1), coeffs[i:i + 1])(ds)
+        if np.ptp(vals) < tol:
+            coeffs[i] = [0.5 * (vals.max() + vals.min()), 0.0, 0.0, 0.0]
+    keep = [0]
+    for i in range(1, len(rec.starts)):
+        j = keep[-1]
+        s = np.linspace(rec.starts[i], ends[i], 9)
+        prev = _Records(rec.starts[j:j + 1], coeffs[j:j + 1])(s)
+        if np.max(np.abs(prev - _Records(rec.starts[i:i + 1], coeffs[i:i + 1])(s))) >= tol:
+            keep.append(i)
+    return _Records(rec.starts[keep], coeffs[keep])
+
+
+def _uniform_breaks(a: float, b: float, step: float) -> np.ndarray:
+    return np.linspace(a, b, max(1, math.ceil((b - a) / step - 1e-9)) + 1)
+
+
+# --------------------------------------------------------------------------------------------
+# lanes
+
+
+@dataclass
+class _SectionFit:
+    s0: float
+    s1: float
+    ids: list[int]
+    widths: list[_Records]
+    pred: dict[int, int]  # lane index -> predecessor lane index in the previous section
+    succ: dict[int, int]
+
+
+def _smoothstep(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+def _taper(w: np.ndarray, dist: np.ndarray, taper: float) -> np.ndarray:
+    """Width target of a lane that opens at dist = 0: the data, capped by a smoothstep from 0."""
+    far = (dist >= taper) & (dist <= taper + 20.0)
+    ref = float(np.median(w[far])) if far.any() else float(w[np.argmax(dist)])
+    return np.minimum(w, ref * _smoothstep(dist / taper))
+
+
+def _link(prev_iv: np.ndarray, next_iv: np.ndarray) -> dict[int, int]:
+    """One-to-one links (next lane -> previous lane) by lateral overlap at a section change."""
+    pairs = []
+    for i, (r0, l0) in enumerate(prev_iv):
+        for j, (r1, l1) in enumerate(next_iv):
+            ov = min(l0, l1) - max(r0, r1)
+            if ov > max(_LINK_MIN_OVERLAP_M, 0.5 * min(l0 - r0, l1 - r1)):
+                pairs.append((-ov, i, j))
+    links: dict[int, int] = {}
+    used: set[int] = set()
+    for _, i, j in sorted(pairs):
+        if j not in links and i not in used:
+            links[j] = i
+            used.add(i)
+    return links
+
+
+def _lane_fit(grid_s: np.ndarray, t_data: dict[int, np.ndarray], sections: list[tuple[float, float, list[int]]],
+              cfg: ExportConfig) -> tuple[_Records, list[_SectionFit]]:
+    """laneOffset and per-section widths from the boundaries' t on the common station grid."""
+    masks = [(grid_s >= s0 - 1e-9) & (grid_s <= s1 + 1e-9) for s0, s1, _ in sections]
+    targets: list[np.ndarray] = []  # per section: (n_boundaries, n_samples)
+    for j, ((s0, s1, ids), m) in enumerate(zip(sections, masks, strict=True)):
+        rows = []
+        for bid in ids:
+            t = t_data[bid][m]
+            ok = np.isfinite(t)
+            if ok.sum() < 2:
+                raise InputError(_WHERE, f"boundary {bid} has no offsets in lane section {j} "
+                                         f"(s {s0:.1f}-{s1:.1f} m of the written road)")
+            rows.append(np.interp(grid_s[m], grid_s[m][ok], t[ok]))
+        arr = np.array(rows)
+        if np.any(np.median(-np.diff(arr, axis=0), axis=1) <= 0):
+            raise InputError(_WHERE, f"lane section {j}: boundaries {ids} are not ordered left to right")
+        targets.append(arr)
+
+    def edges(j: int, at_end: bool) -> np.ndarray:
+        s = grid_s[masks[j]]
+        near = s >= s[-1] - 5.0 if at_end else s <= s[0] + 5.0
+        t = targets[j][:, near].mean(axis=1)
+        return np.stack([t[1:], t[:-1]], axis=1)  # (lanes, [right, left])
+
+    preds = [{} for _ in sections]
+    succs = [{} for _ in sections]
+    for j in range(1, len(sections)):
+        preds[j] = _link(edges(j - 1, True), edges(j, False))
+        succs[j - 1] = {i: jj for jj, i in preds[j].items()}
+
+    offset_s: list[np.ndarray] = []
+    offset_t: list[np.ndarray] = []
+    fits: list[_SectionFit] = []
+    for j, ((s0, s1, ids), m) in enumerate(zip(sections, masks, strict=True)):
+        s = grid_s[m]
+        arr = targets[j]
+        taper = min(cfg.taper_length_m, 0.5 * (s1 - s0))
+        lead = arr[0].copy()
+        breaks = _uniform_breaks(s0, s1, cfg.lane_record_m)
+        widths = []
+        for i in range(len(ids) - 1):
+            w = arr[i] - arr[i + 1]
+            cons: list[tuple[float, int, float]] = []
+            if j > 0 and i not in preds[j]:
+                w = _taper(w, s - s0, taper)
+                cons.append((s0, 0, 0.0))
+            elif j > 0:
+                cons.append((s0, 0, float(fits[j - 1].widths[preds[j][i]](np.array([s0]))[0])))
+            if j < len(sections) - 1 and i not in succs[j]:
+                w = _taper(w, s1 - s, taper)
+                cons.append((s1, 0, 0.0))
+            if i == 0 and (j > 0 and i not in preds[j] or j < len(sections) - 1 and i not in succs[j]):
+                lead = arr[1] + w
+            widths.append(_spline_records(s, w, breaks, constraints=tuple(cons)))
+        fits.append(_SectionFit(s0, s1, ids, widths, preds[j], succs[j]))
+        offset_s.append(s)
+        offset_t.append(lead)
+    all_breaks = np.unique(np.concatenate([_uniform_breaks(a, b, cfg.lane_record_m) for a, b, _ in sections]))
+    offset = _spline_records(np.concatenate(offset_s), np.concatenate(offset_t), all_breaks)
+    return offset, fits
+
+
+# --------------------------------------------------------------------------------------------
+# input checks and resampling
+
+
+def _check_model(model: LaneModel, cfg: ExportConfig) -> None:
+    if cfg.piece_length_m <= 1.0 or not 0.0 <= cfg.look_fraction < 1.0 or cfg.lane_record_m <= 0.5:
+        raise InputError("configuration export", "piece_length_m > 1, 0 <= look_fraction < 1 and "
+                                                 "lane_record_m > 0.5 are required")
+    s = np.asarray(model.s, dtype=np.float64)
+    ref = np.asarray(model.reference, dtype=np.float64)
+    if s.ndim != 1 or ref.shape != (len(s), 3):
+        raise InputError(_WHERE, f"reference has shape {ref.shape} for {len(s)} stations (expected (M, 3))")
+    if len(s) < 4 or not np.all(np.isfinite(s)) or not np.all(np.isfinite(ref[:, :2])):
+        raise InputError(_WHERE, "the reference line needs at least 4 finite stations and x, y")
+    if np.any(np.diff(s) <= 0):
+        raise InputError(_WHERE, "reference stations s are not strictly increasing")
+    if s[-1] - s[0] < 5.0:
+        raise InputError(_WHERE, f"the road is {s[-1] - s[0]:.2f} m long; at least 5 m are needed")
+    known = {b.id for b in model.boundaries}
+    for b in model.boundaries:
+        if np.shape(b.t) != s.shape:
+            raise InputError(_WHERE, f"boundary {b.id}: {np.size(b.t)} offsets for {len(s)} stations")
+        if b.mark_type not in ("solid", "broken"):
+            raise InputError(_WHERE, f"boundary {b.id}: mark type {b.mark_type!r} (solid or broken)")
+    if not model.sections:
+        raise InputError(_WHERE, "no lane sections")
+    for j, sec in enumerate(model.sections):
+        if len(sec.boundary_ids) < 2:
+            raise InputError(_WHERE, f"lane section {j} has {len(sec.boundary_ids)} boundaries (at least 2)")
+        missing = [i for i in sec.boundary_ids if i not in known]
+        if missing:
+            raise InputError(_WHERE, f"lane section {j} names unknown boundaries {missing}")
+        if sec.s_end <= sec.s_start:
+            raise InputError(_WHERE, f"lane section {j} is empty (s {sec.s_start} to {sec.s_end})")
+        if j and abs(sec.s_start - model.sections[j - 1].s_end) > 0.5:
+            raise InputError(_WHERE, f"lane section {j} starts at {sec.s_start:.2f} m but section {j - 1} "
+                                     f"ends at {model.sections[j - 1].s_end:.2f} m")
+
+
+def _resample(model: LaneModel) -> tuple[np.ndarray, np.ndarray, dict[int, np.ndarray]]:
+    """Uniform station grid (at most 1 m) with the reference and every boundary's t on it."""
+    s = np.asarray(model.s, dtype=np.float64)
+    step = min(1.0, float(np.median(np.diff(s))))
+    grid = np.linspace(s[0], s[-1], math.ceil((s[-1] - s[0]) / step - 1e-9) + 1)
+    ref = np.asarray(model.reference, dtype=np.float64)
+    z = ref[:, 2]
+    ok = np.isfinite(z)
+    z = np.interp(s, s[ok], z[ok]) if ok.any() else np.zeros_like(s)
+    out = np.stack([np.interp(grid, s, ref[:, 0]), np.interp(grid, s, ref[:, 1]), np.interp(grid, s, z)], axis=1)
+    t = {b.id: np.interp(grid, s, np.asarray(b.t, dtype=np.float64)) for b in model.boundaries}
+    return grid, out, t
+
+
+# --------------------------------------------------------------------------------------------
+# superelevation
+
+
+def _superelevation(planes: GroundPlanes | None, grid_xy: np.ndarray, grid_odr: np.ndarray, left: np.ndarray,
+                    breaks: np.ndarray, cfg: ExportConfig) -> _Records:
+    """Roll of the ground planes about the road, left side up positive; 0 without planes."""
+    zero = _Records(np.array([0.0]), np.zeros((1, 4)))
+    if planes is None or len(planes.normals_world) == 0:
+        return zero
+    normals = np.asarray(planes.normals_world, dtype=np.float64)
+    points = np.asarray(planes.points_world, dtype=np.float64)
+    ok = np.all(np.isfinite(normals), axis=1) & np.all(np.isfinite(points), axis=1) & (normals[:, 2] > 0.5)
+    dist, idx = cKDTree(grid_xy).query(points[ok, :2])
+    near = dist <= cfg.plane_max_offset_m
+    if near.sum() < 2:
+        return zero
+    n, i = normals[ok][near], idx[near]
+    roll = np.arctan2(-np.sum(n[:, :2] * left[i], axis=1), n[:, 2])
+    order = np.argsort(grid_odr[i], kind="stable")
+    s_pl = grid_odr[i][order]
+    roll = median_filter(roll[order], size=max(1, cfg.superelevation_median_scans), mode="nearest")
+    target = np.interp(grid_odr, s_pl, roll)
+    return _spline_records(grid_odr, target, breaks, smooth=cfg.superelevation_smoothing)
+
+
+# --------------------------------------------------------------------------------------------
+# writing
+
+
+class _ParamPoly3(xodr.ParamPoly3):
+    """paramPoly3 that keeps our Gauss-Legendre length (scenariogeneration would re-integrate it)."""
+
+    def get_end_data(self, x: float, y: float, h: float) -> tuple[float, float, float, float]:
+        eu = self.au + self.bu + self.cu + self.du
+        ev = self.av + self.bv + self.cv + self.dv
+        hdg = h + math.atan2(self.bv + 2 * self.cv + 3 * self.dv, self.bu + 2 * self.cu + 3 * self.du)
+        return x + eu * math.cos(h) - ev * math.sin(h), y + eu * math.sin(h) + ev * math.cos(h), hdg, self.length
+
+
+def _mark(b: Boundary) -> xodr.RoadMark:
+    if b.mark_type == "broken":
+        pattern = b.dash_length is not None and b.gap_length is not None
+        return xodr.RoadMark(xodr.RoadMarkType.broken, float(b.mark_width),
+                             length=float(b.dash_length) if pattern else None,
+                             space=float(b.gap_length) if pattern else None,
+                             laneChange=xodr.LaneChange.both)
+    return xodr.RoadMark(xodr.RoadMarkType.solid, float(b.mark_width), laneChange=xodr.LaneChange.none)
+
+
+def _lane(lane_type: xodr.LaneType, records: _Records, s0: float) -> xodr.Lane:
+    a, b, c, d = (float(v) for v in records.coeffs[0])
+    lane = xodr.Lane(lane_type, a, b, c, d, soffset=float(records.starts[0] - s0))
+    for start, (a, b, c, d) in zip(records.starts[1:], records.coeffs[1:], strict=True):
+        lane.add_lane_width(float(a), float(b), float(c), float(d), soffset=float(start - s0))
+    return lane
+
+
+def _constant(width: float, s0: float) -> _Records:
+    return _Records(np.array([s0]), np.array([[width, 0.0, 0.0, 0.0]]))
+
+
+def _build_lanes(offset: _Records, fits: list[_SectionFit], bounds: dict[int, Boundary],
+                 cfg: ExportConfig) -> xodr.Lanes:
+    lanes = xodr.Lanes()
+    for start, (a, b, c, d) in zip(offset.starts, offset.coeffs, strict=True):
+        lanes.add_laneoffset(xodr.LaneOffset(float(start), float(a), float(b), float(c), float(d)))
+    built: list[xodr.LaneSection] = []
+    for j, fit in enumerate(fits):
+        centre = xodr.Lane()
+        centre.add_roadmark(_mark(bounds[fit.ids[0]]))
+        sec = xodr.LaneSection(float(fit.s0), centre)
+        if cfg.left_border_m > 0:
+            border = _lane(xodr.LaneType.border, _constant(cfg.left_border_m, fit.s0), fit.s0)
+            if j > 0:
+                border.add_link("predecessor", 1)
+            if j < len(fits) - 1:
+                border.add_link("successor", 1)
+            sec.add_left_lane(border)
+        for i, rec in enumerate(fit.widths):
+            lane = _lane(xodr.LaneType.driving, rec, fit.s0)
+            if i in fit.pred:
+                lane.add_link("predecessor", -(fit.pred[i] + 1))
+            if i in fit.succ:
+                lane.add_link("successor", -(fit.succ[i] + 1))
+            lane.add_roadmark(_mark(bounds[fit.ids[i + 1]]))
+            sec.add_right_lane(lane)
+        if cfg.right_shoulder_m > 0:
+            shoulder = _lane(xodr.LaneType.shoulder, _constant(cfg.right_shoulder_m, fit.s0), fit.s0)
+            if j > 0:
+                shoulder.add_link("predecessor", -len(fits[j - 1].widths) - 1)
+            if j < len(fits) - 1:
+                shoulder.add_link("successor", -len(fits[j + 1].widths) - 1)
+            sec.add_right_lane(shoulder)
+        built.append(sec)
+    for sec in built:
+        lanes.add_lanesection(sec)
+    return lanes
+
+
+def _geo_reference(model: LaneModel) -> tuple[str, bool]:
+    """PROJ string of the local frame and whether it is a true geodetic placement."""
+    origin = model.origin
+    if origin.proj:
+        return origin.proj, True
+    if origin.lat is not None and origin.lon is not None:
+        return (f"+proj=tmerc +lat_0={origin.lat!r} +lon_0={origin.lon!r} +k=1 +x_0=0 +y_0=0 +ellps=WGS84 "
+                f"+units=m +no_defs"), True
+    return _LOCAL_TMERC, False
+
+
+def _date(planes: GroundPlanes | None) -> str | None:
+    if planes is None or len(planes.times) == 0:
+        return None
+    t0 = float(np.min(planes.times))
+    if not 946684800.0 <= t0 <= 4102444800.0:  # 2000..2100 as UNIX time
+        return None
+    return datetime.fromtimestamp(t0, tz=timezone.utc).strftime("%Y-%m-%dT%H:%M:%S")
+
+
+def _serialise(odr: xodr.OpenDrive, geo: str, geodetic: bool, date: str | None, bbox: np.ndarray) -> bytes:
+    root = etree.fromstring(ET.tostring(odr.get_element()))
+    header = root.find("header")
+    if date is None:
+        header.attrib.pop("date", None)
+    else:
+        header.set("date", date)
+    for key, val in zip(("north", "south", "east", "west"), (bbox[3], bbox[1], bbox[2], bbox[0]), strict=True):
+        header.set(key, repr(float(val)))
+    header.set("vendor", "lidar2xodr")
+    ref = header.find("geoReference")
+    ref.text = etree.CDATA(geo)
+    if not geodetic:
+        ref.addprevious(etree.Comment(" no GNSS: the frame is local; the geoReference is a placeholder at 0, 0 "))
+    return etree.tostring(root, pretty_print=True, xml_declaration=True, encoding="UTF-8")
+
+
+# --------------------------------------------------------------------------------------------
+# measuring what was written
+
+
+def _measure(data: bytes) -> tuple[float, float, float]:
+    """Largest leap, kink and |declared - integrated length| between the written geometries."""
+    root = etree.fromstring(data)
+    geoms = root.findall("road/planView/geometry")
+    leap = kink = lerr = 0.0
+    prev_end: tuple[float, float, float] | None = None
+    for g in geoms:
+        pp = g.find("paramPoly3")
+        u = np.array([float(pp.get(k)) for k in ("aU", "bU", "cU", "dU")])
+        v = np.array([float(pp.get(k)) for k in ("aV", "bV", "cV", "dV")])
+        x, y, h, length = (float(g.get(k)) for k in ("x", "y", "hdg", "length"))
+        start_h = h + math.atan2(v[1], u[1])
+        if prev_end is not None:
+            leap = max(leap, math.hypot(x + u[0] * math.cos(h) - v[0] * math.sin(h) - prev_end[0],
+                                        y + u[0] * math.sin(h) + v[0] * math.cos(h) - prev_end[1]))
+            kink = max(kink, abs(_wrap(start_h - prev_end[2])))
+        prev_end = _local_end(u, v, x, y, h)
+        xs, ws = np.polynomial.legendre.leggauss(64)
+        pgl = 0.5 * (xs + 1)
+        speed = np.hypot(u[1] + 2 * u[2] * pgl + 3 * u[3] * pgl**2, v[1] + 2 * v[2] * pgl + 3 * v[3] * pgl**2)
+        lerr = max(lerr, abs(0.5 * float(speed @ ws) - length))
+    return leap, kink, lerr
+
+
+# --------------------------------------------------------------------------------------------
+
+
+def export_opendrive(model: LaneModel, planes: GroundPlanes | None, cfg: ExportConfig, path: Path) -> ExportSummary:
+    """Write `model` as one OpenDRIVE road to `path` (atomically) and return what was measured."""
+    _check_model(model, cfg)
+    grid, ref, t_grid = _resample(model)
+    length_m = grid[-1] - grid[0]
+    n_pieces = max(1, math.ceil(length_m / cfg.piece_length_m - 1e-9))
+    breaks = np.linspace(grid[0], grid[-1], n_pieces + 1)
+    plan = _fit_plan(grid, ref[:, :2], breaks, cfg)
+
+    k = np.clip(np.searchsorted(breaks, grid, side="right") - 1, 0, n_pieces - 1)
+    p = (grid - breaks[k]) / (breaks[k + 1] - breaks[k])
+    grid_odr, ref_t = plan.project(ref[:, :2], k, p)
+    tangent = np.gradient(ref[:, :2], grid, axis=0)
+    left = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1) / np.linalg.norm(tangent, axis=1)[:, None]
+
+    t_odr: dict[int, np.ndarray] = {}
+    for bid, t in t_grid.items():
+        ok = np.isfinite(t)
+        t_odr[bid] = np.full(len(grid), np.nan)
+        if ok.sum() >= 2:
+            s_b, t_b = plan.project(ref[ok, :2] + t[ok, None] * left[ok], k[ok], p[ok])
+            order = np.argsort(s_b)
+            t_odr[bid][ok] = np.interp(grid_odr[ok], s_b[order], t_b[order])
+
+    total = float(plan.s[-1] + plan.length[-1])
+    geo_breaks = np.r_[plan.s, total]
+    elevation = _spline_records(grid_odr, ref[:, 2], geo_breaks)
+    superelevation = _superelevation(planes, ref[:, :2], grid_odr, left, geo_breaks, cfg)
+    slant = 1.0 / np.cos(superelevation(grid_odr))  # t runs along the banked surface
+    t_odr = {bid: t * slant for bid, t in t_odr.items()}
+    sec_s = np.interp([sec.s_start for sec in model.sections], grid, grid_odr)
+    sec_s[0] = 0.0
+    sec_e = np.r_[sec_s[1:], total]
+    sections = [(float(a), float(b), list(sec.boundary_ids))
+                for a, b, sec in zip(sec_s, sec_e, model.sections, strict=True)]
+    offset, fits = _lane_fit(grid_odr, t_odr, sections, cfg)
+
+    planview = xodr.PlanView()
+    for i in range(len(plan.s)):
+        geom = _ParamPoly3(*(float(c) for c in plan.u[i]), *(float(c) for c in plan.v[i]),
+                           prange="normalized", length=float(plan.length[i]))
+        planview.add_fixed_geometry(geom, float(plan.x[i]), float(plan.y[i]), float(plan.hdg[i]), s=float(plan.s[i]))
+    bounds = {b.id: b for b in model.boundaries}
+    road = xodr.Road(1, planview, _build_lanes(offset, fits, bounds, cfg), name=cfg.road_name,
+                     rule=xodr.TrafficRule.RHT)
+    road.add_type(getattr(xodr.RoadType, cfg.road_type), 0.0)
+    for start, (a, b, c, d) in zip(elevation.starts, elevation.coeffs, strict=True):
+        road.add_elevation(float(start), float(a), float(b), float(c), float(d))
+    for start, (a, b, c, d) in zip(superelevation.starts, superelevation.coeffs, strict=True):
+        road.add_superelevation(float(start), float(a), float(b), float(c), float(d))
+    geo, geodetic = _geo_reference(model)
+    odr = xodr.OpenDrive(cfg.road_name, revMajor="1", revMinor=str(cfg.opendrive_minor), geo_reference=geo)
+    odr.add_road(road)
+
+    border_dev = 0.0
+    outer: list[np.ndarray] = [ref[:, :2]]
+    for fit in fits:
+        m = (grid_odr >= fit.s0) & (grid_odr <= fit.s1)
+        border = offset(grid_odr[m])
+        for i, bid in enumerate(fit.ids):
+            if i:
+                border = border - fit.widths[i - 1](grid_odr[m])
+            ok = np.isfinite(t_odr[bid][m])
+            if ok.any():
+                border_dev = max(border_dev, float(np.max(np.abs(border[ok] - t_odr[bid][m][ok]))))
+            outer.append(ref[m, :2] + border[:, None] * left[m])
+    pts = np.vstack(outer)
+    margin = max(cfg.right_shoulder_m, cfg.left_border_m)
+    bbox = np.r_[pts.min(axis=0) - margin, pts.max(axis=0) + margin]
+
+    data = _serialise(odr, geo, geodetic, _date(planes), bbox)
+    leap, kink, lerr = _measure(data)
+    write_bytes(path, data)
+    return ExportSummary(length_m=total, pieces=len(plan.s), lane_sections=len(fits), max_leap_m=leap,
+                         max_kink_rad=kink, max_length_error_m=lerr, max_reference_dev_m=float(np.max(np.abs(ref_t))),
+                         max_border_dev_m=border_dev)
