@@ -48,6 +48,11 @@ def _arr(s: float | np.ndarray) -> np.ndarray:
     return np.atleast_1d(np.asarray(s, dtype=np.float64))
 
 
+def _lookup(starts: np.ndarray, s: np.ndarray, left: bool) -> np.ndarray:
+    """Index of the record owning s: [start, next start) or, with left=True, (start, next start]."""
+    return np.clip(np.searchsorted(starts, s, side="left" if left else "right") - 1, 0, None)
+
+
 # --------------------------------------------------------------------------------------------
 # piecewise cubic polynomials (elevation, superelevation, laneOffset, widths, borders)
 
@@ -63,11 +68,12 @@ class CubicRecords:
     def empty(cls) -> CubicRecords:
         return cls(np.zeros(0), np.zeros((0, 4)))
 
-    def __call__(self, s: float | np.ndarray, derivative: int = 0) -> np.ndarray:
+    def __call__(self, s: float | np.ndarray, derivative: int = 0, left: bool = False) -> np.ndarray:
+        """Value (or derivative) at s; left=True takes the limit from below at record boundaries."""
         s = _arr(s)
         if len(self.starts) == 0:
             return np.zeros_like(s)
-        i = np.clip(np.searchsorted(self.starts, s, side="right") - 1, 0, None)
+        i = _lookup(self.starts, s, left)
         ds = s - self.starts[i]
         a, b, c, d = self.coeffs[i].T
         if derivative == 0:
@@ -296,10 +302,12 @@ class Road:
         self._geo_starts = np.array([g.s for g in self.geometries])
         self._sec_starts = np.array([ls.s for ls in self.lane_sections])
 
-    def reference(self, s: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """World x, y and heading of the reference line at station s."""
+    def reference(
+        self, s: float | np.ndarray, left: bool = False
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """World x, y and heading of the reference line at station s (left: limit from below)."""
         s = _arr(s)
-        idx = np.clip(np.searchsorted(self._geo_starts, s, side="right") - 1, 0, None)
+        idx = _lookup(self._geo_starts, s, left)
         x, y, h = np.empty_like(s), np.empty_like(s), np.empty_like(s)
         for i in np.unique(idx):
             m = idx == i
@@ -307,15 +315,15 @@ class Road:
             x[m], y[m], h[m] = g.eval(s[m] - g.s)
         return x, y, h
 
-    def elevation(self, s: float | np.ndarray) -> np.ndarray:
-        return self.elevation_profile(s)
+    def elevation(self, s: float | np.ndarray, left: bool = False) -> np.ndarray:
+        return self.elevation_profile(s, left=left)
 
-    def superelevation(self, s: float | np.ndarray) -> np.ndarray:
+    def superelevation(self, s: float | np.ndarray, left: bool = False) -> np.ndarray:
         """Roll angle in radians, positive = left side up."""
-        return self.superelevation_profile(s)
+        return self.superelevation_profile(s, left=left)
 
-    def lane_offset(self, s: float | np.ndarray) -> np.ndarray:
-        return self.lane_offsets(s)
+    def lane_offset(self, s: float | np.ndarray, left: bool = False) -> np.ndarray:
+        return self.lane_offsets(s, left=left)
 
     def section_index(self, s: float | np.ndarray) -> np.ndarray:
         return np.clip(np.searchsorted(self._sec_starts, _arr(s), side="right") - 1, 0, None)
@@ -348,7 +356,9 @@ class Road:
         return np.stack([x - np.sin(hdg) * lateral, y + np.cos(hdg) * lateral, z], axis=1)
 
 
-def _section_border(ls: LaneSection, s: np.ndarray, offset: np.ndarray, lane_id: int) -> np.ndarray | None:
+def _section_border(
+    ls: LaneSection, s: np.ndarray, offset: np.ndarray, lane_id: int, left: bool = False
+) -> np.ndarray | None:
     if lane_id not in ls.lanes:
         return None
     if lane_id == 0:
@@ -359,9 +369,9 @@ def _section_border(ls: LaneSection, s: np.ndarray, offset: np.ndarray, lane_id:
     for k in range(side, lane_id + side, side):
         lane = ls.lanes[k]
         if lane.borders is not None and len(lane.widths.starts) == 0:
-            t = offset + side * lane.borders(ds)
+            t = offset + side * lane.borders(ds, left=left)
         else:
-            t = t + side * lane.widths(ds)
+            t = t + side * lane.widths(ds, left=left)
     return t
 
 
@@ -434,20 +444,19 @@ class OpenDriveMap:
 
 
 def _sample_section(road: Road, k: int, ls: LaneSection, s: np.ndarray) -> SampledSection:
-    x, y, hdg = road.reference(s)
-    z = road.elevation(s)
-    roll = road.superelevation(s)
-    offset = road.lane_offset(s)
-    cr, sr, nx, ny = np.cos(roll), np.sin(roll), -np.sin(hdg), np.cos(hdg)
+    """Samples of one section; its closed end takes every profile's limit from below.
+
+    Records (laneOffset, elevation, widths) that start exactly at the next section's start belong
+    to that section, not to this one's last sample.
+    """
     ids = ls.lane_ids()
-    border_t: dict[int, np.ndarray] = {}
-    border_xyz: dict[int, np.ndarray] = {}
-    for lid in ids:
-        t = _section_border(ls, s, offset, lid)
-        assert t is not None
-        border_t[lid] = t
-        lat = t * cr
-        border_xyz[lid] = np.stack([x + nx * lat, y + ny * lat, z + t * sr], axis=1)
+    parts = [_frame(road, ls, s[:-1], ids, False), _frame(road, ls, s[-1:], ids, True)]
+    x, y, hdg, z, roll = (np.concatenate([p[i] for p in parts]) for i in range(5))
+    border_t = {lid: np.concatenate([p[5][lid] for p in parts]) for lid in ids}
+    cr, sr, nx, ny = np.cos(roll), np.sin(roll), -np.sin(hdg), np.cos(hdg)
+    border_xyz = {
+        lid: np.stack([x + nx * t * cr, y + ny * t * cr, z + t * sr], axis=1) for lid, t in border_t.items()
+    }
     return SampledSection(
         road_id=road.id,
         section=k,
@@ -459,6 +468,13 @@ def _sample_section(road: Road, k: int, ls: LaneSection, s: np.ndarray) -> Sampl
         border_xyz=border_xyz,
         lane_types={lid: ls.lanes[lid].type for lid in ids},
     )
+
+
+def _frame(road: Road, ls: LaneSection, s: np.ndarray, ids: list[int], left: bool) -> tuple:
+    x, y, hdg = road.reference(s, left)
+    offset = road.lane_offset(s, left)
+    borders = {lid: _section_border(ls, s, offset, lid, left) for lid in ids}
+    return x, y, hdg, road.elevation(s, left), road.superelevation(s, left), borders
 
 
 # --------------------------------------------------------------------------------------------
