@@ -1,0 +1,85 @@
+"""Readers of recorded drives, one module per format, one interface (`base.Dataset`).
+
+`open_dataset(path)` recognises the format from what the path holds, in this order:
+`drive` (meta.yaml with format lidar2xodr-drive), `aimotive` (dynamic/raw-revolutions/),
+`kitti_raw` (velodyne_points/data/), `rosbag` (.bag file or folder of them, rosbag2 folder with
+metadata.yaml), `folder` (scan files directly inside). `format=` overrides the guess.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from lidar2xodr.datasets.base import Dataset, ReadStats
+from lidar2xodr.errors import InputError
+
+FORMATS = ("drive", "aimotive", "kitti_raw", "rosbag", "folder")
+
+__all__ = ["FORMATS", "Dataset", "ReadStats", "detect_format", "open_dataset"]
+
+
+def detect_format(path: Path) -> str:
+    """Name of the format `path` holds; InputError when none fits."""
+    from lidar2xodr.datasets.aimotive import is_aimotive
+    from lidar2xodr.datasets.drive import is_drive
+    from lidar2xodr.datasets.kitti_raw import is_kitti_raw
+    from lidar2xodr.datasets.pointfiles import scan_files
+    from lidar2xodr.datasets.rosbag import is_rosbag
+
+    if not path.exists():
+        raise InputError(path, "no such file or folder")
+    if path.is_file():
+        if is_rosbag(path):
+            return "rosbag"
+        raise InputError(path, "a single file is not a drive (give a folder, a .bag file or a rosbag2 folder)")
+    if is_drive(path):
+        return "drive"
+    if is_aimotive(path):
+        return "aimotive"
+    if is_kitti_raw(path):
+        return "kitti_raw"
+    if is_rosbag(path):
+        return "rosbag"
+    if scan_files(path):
+        return "folder"
+    raise InputError(path, "no scans found: expected meta.yaml, dynamic/raw-revolutions/, velodyne_points/data/, "
+                     "a ROS bag, or scan files (.pcd .las .laz .ply .bin .npy)")
+
+
+def open_dataset(
+    path: str | Path,
+    format: str | None = None,
+    *,
+    topic: str | None = None,
+    pose_topic: str | None = None,
+    intensity_scale: float | None = None,
+) -> Dataset:
+    """Open a recorded drive. `topic`/`pose_topic` choose bag topics; `intensity_scale` overrides
+    the detected raw value of 100 % reflectivity (folder and bag formats)."""
+    path = Path(path)
+    fmt = format or detect_format(path)
+    if not path.exists():
+        raise InputError(path, "no such file or folder")
+    if fmt == "drive":
+        from lidar2xodr.datasets.drive import DriveDataset
+
+        return DriveDataset(path)
+    if fmt == "aimotive":
+        from lidar2xodr.datasets.aimotive import AimotiveDataset
+
+        return AimotiveDataset(path)
+    if fmt == "kitti_raw":
+        from lidar2xodr.datasets.kitti_raw import KittiRawDataset
+
+        return KittiRawDataset(path)
+    if fmt == "rosbag":
+        from lidar2xodr.datasets.rosbag import RosbagDataset
+
+        return RosbagDataset(path, topic=topic, pose_topic=pose_topic, intensity_scale=intensity_scale)
+    if fmt == "folder":
+        from lidar2xodr.datasets.folder import FolderDataset
+
+        if not path.is_dir():
+            raise InputError(path, "the folder format needs a folder of scan files")
+        return FolderDataset(path, intensity_scale=intensity_scale)
+    raise InputError(path, f"unknown format {fmt!r} (known: {', '.join(FORMATS)})")

@@ -1,0 +1,246 @@
+"""The one interface every recording reader implements, plus the shared reading machinery.
+
+A reader streams `Scan`s in the VEHICLE frame (ISO 8855, origin on the road below the reference
+point) with intensity normalised to 0..1 and absolute per-point times in seconds where the format
+has them. Decisions shared by every reader:
+
+- Non-finite points (NaN/inf in x, y, z, intensity or time) are dropped and counted in
+  `stats.dropped_points`; a scan left with no point is skipped and counted as bad.
+- A file that cannot be read (truncated, corrupt) is skipped with a warning and listed in
+  `stats.bad_scans`; the extraction stage aborts when more than `max_bad_scan_share` are bad.
+- A scan without an intensity field, or scans whose stamps go backwards, are an InputError
+  naming the file: both make the marking filter or the accumulation silently wrong.
+- A scan's stamp is the time of its last point when per-point times exist (the end of the
+  sweep, as ROS drivers stamp it), else the format's own scan time.
+- Intensities above the sensor's scale are clipped to 1 (saturated returns).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from lidar2xodr.data import GeoOrigin, Scan, SensorInfo, Trajectory
+from lidar2xodr.errors import InputError
+
+log = logging.getLogger("lidar2xodr.datasets")
+
+
+@dataclass
+class ReadStats:
+    """What the reader had to drop: bad scans (name, reason) and non-finite points."""
+
+    bad_scans: list[tuple[str, str]] = field(default_factory=list)
+    dropped_points: int = 0
+    scans_read: int = 0
+    points_read: int = 0
+
+
+@runtime_checkable
+class Dataset(Protocol):
+    """A recorded drive: scans in the vehicle frame, optional poses, sensor and geo metadata."""
+
+    path: Path
+    sensor: SensorInfo
+    origin: GeoOrigin
+    stats: ReadStats
+
+    def __len__(self) -> int: ...
+
+    def __iter__(self) -> Iterator[Scan]: ...
+
+    def poses(self) -> Trajectory | None: ...
+
+
+@dataclass
+class RawScan:
+    """One scan as a format delivers it: sensor-frame points, raw intensity, times in seconds."""
+
+    xyz: np.ndarray
+    intensity: np.ndarray | None
+    times: np.ndarray | None = None
+    stamp: float | None = None
+
+
+class CorruptScan(Exception):
+    """Raised by a format's reader for a file that cannot be decoded; the scan is skipped."""
+
+
+def detect_intensity_scale(values: np.ndarray) -> float:
+    """The raw value that means 100 %: from the data type, else from the largest value.
+
+    Integer types use their full range (uint8 -> 255, uint16 -> 65535). Floats are matched to
+    the usual conventions by their maximum: <= 1 (normalised), <= 100 (percent, Livox/Hesai
+    calibrated reflectivity), <= 255 (8-bit drivers that publish floats), else 65535.
+    """
+    if values.dtype == np.uint8 or values.dtype == np.int8:
+        return 255.0
+    if values.dtype in (np.uint16, np.int16, np.uint32, np.int32):
+        top = float(values.max()) if values.size else 0.0
+        return 255.0 if top <= 255 else 65535.0
+    finite = values[np.isfinite(values)]
+    top = float(finite.max()) if finite.size else 1.0
+    for scale in (1.0, 100.0, 255.0):
+        if top <= scale:
+            return scale
+    return 65535.0
+
+
+def time_unit(span: float) -> float:
+    """Factor that turns a per-point time span into seconds, guessed from the sweep duration.
+
+    A sweep lasts 10 ms to 1 s; spans of 1e1..1e3, 1e4..1e6 or beyond are taken as ms, us, ns.
+    """
+    for factor in (1.0, 1e-3, 1e-6, 1e-9):
+        if span * factor <= 2.0:
+            return factor
+    return 1e-9
+
+
+def transform(T: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+    return xyz @ T[:3, :3].T + T[:3, 3]
+
+
+def mount_from_xyzrpy(x: float, y: float, z: float, roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """T_vehicle_sensor from a position and intrinsic z-y'-x'' (yaw, pitch, roll) angles in radians."""
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("ZYX", [yaw, pitch, roll]).as_matrix()
+    T[:3, 3] = [x, y, z]
+    return T
+
+
+class ScanFileDataset:
+    """Base of the readers: iterates over `items`, reads each with `_read`, cleans and normalises.
+
+    Subclasses set `path`, `sensor`, `origin`, `items` (one per scan), `names` (for messages) and
+    implement `_read(k) -> RawScan`. `points_in_vehicle_frame` skips the mount transform for
+    formats that store points already in the vehicle frame. When `estimate_mount` is set the
+    mount is unknown: it is estimated from the first readable scan's ground plane.
+    """
+
+    path: Path
+    sensor: SensorInfo
+    origin: GeoOrigin
+    items: Sequence[Any]
+    names: Sequence[str]
+    points_in_vehicle_frame: bool = False
+    estimate_mount: bool = False
+    intensity_scale: float | None = None
+
+    def __init__(self) -> None:
+        self.stats = ReadStats()
+        self._trajectory: Trajectory | None = None
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def poses(self) -> Trajectory | None:
+        return self._trajectory
+
+    def _read(self, k: int) -> RawScan:  # pragma: no cover - abstract
+        """Read scan `k` (an index into `items`)."""
+        raise NotImplementedError
+
+    def _name(self, k: int) -> str:
+        return self.names[k]
+
+    def _read_checked(self, k: int) -> RawScan | None:
+        try:
+            raw = self._read(k)
+        except CorruptScan as exc:
+            self._bad(self._name(k), str(exc))
+            return None
+        if raw.intensity is None:
+            raise InputError(
+                self._name(k), "scan has no intensity field; lane markings are found by their reflectivity"
+            )
+        return raw
+
+    def _raw_scans(self) -> Iterator[tuple[int, RawScan | None]]:
+        """(index, raw scan or None when unreadable) in recording order."""
+        for k in range(len(self.items)):
+            yield k, self._read_checked(k)
+
+    def _bad(self, name: str, reason: str) -> None:
+        self.stats.bad_scans.append((name, reason))
+        log.warning("skipping scan %s: %s", name, reason)
+
+    def __iter__(self) -> Iterator[Scan]:
+        self.stats = ReadStats()
+        last_stamp = -np.inf
+        for k, raw in self._raw_scans():
+            if raw is None:
+                continue
+            scan = self._clean(k, raw)
+            if scan is None:
+                continue
+            if scan.stamp < last_stamp:
+                raise InputError(
+                    self._name(k),
+                    f"scan time {scan.stamp:.6f} s is before the previous scan's {last_stamp:.6f} s "
+                    "(timestamps must increase)",
+                )
+            last_stamp = scan.stamp
+            self.stats.scans_read += 1
+            yield scan
+
+    def _clean(self, k: int, raw: RawScan) -> Scan | None:
+        name = self._name(k)
+        xyz = np.asarray(raw.xyz, dtype=np.float64).reshape(-1, 3)
+        inten = np.asarray(raw.intensity)
+        if self.intensity_scale is None:
+            self.intensity_scale = detect_intensity_scale(inten) if inten.size else 1.0
+            self.sensor.intensity_scale = self.intensity_scale
+        inten = inten.astype(np.float64).reshape(-1)
+        times = None if raw.times is None else np.asarray(raw.times, dtype=np.float64).reshape(-1)
+        if len(inten) != len(xyz) or (times is not None and len(times) != len(xyz)):
+            self._bad(name, "point fields have different lengths")
+            return None
+        ok = np.isfinite(xyz).all(axis=1) & np.isfinite(inten)
+        if times is not None:
+            ok &= np.isfinite(times)
+        self.stats.points_read += len(xyz)
+        self.stats.dropped_points += int(len(ok) - ok.sum())
+        if not ok.all():
+            xyz, inten = xyz[ok], inten[ok]
+            times = None if times is None else times[ok]
+        if len(xyz) == 0:
+            self._bad(name, "no finite point in the scan")
+            return None
+        if self.estimate_mount:
+            self._estimate_mount(xyz)
+        if not self.points_in_vehicle_frame:
+            xyz = transform(self.sensor.mount, xyz)
+        intensity = np.clip(inten / self.intensity_scale, 0.0, 1.0).astype(np.float32)
+        if times is not None:
+            stamp = float(times.max())
+        elif raw.stamp is not None:
+            stamp = float(raw.stamp)
+        else:
+            stamp = float(k)
+        return Scan(index=k, stamp=stamp, xyz=xyz, intensity=intensity, times=times)
+
+    def _estimate_mount(self, xyz: np.ndarray) -> None:
+        from lidar2xodr.extraction import estimate_mount
+
+        self.sensor.mount = estimate_mount(xyz, self.sensor.max_range_m)
+        self.estimate_mount = False
+        log.info("mount estimated from the ground: sensor %.2f m above the road", self.sensor.mount[2, 3])
+
+
+def check_trajectory(times: np.ndarray, where: str | Path) -> None:
+    """Poses must be finite and strictly increasing in time."""
+    if len(times) < 2:
+        raise InputError(where, f"needs at least 2 poses, found {len(times)}")
+    if not np.isfinite(times).all():
+        raise InputError(where, "pose times are not all finite")
+    bad = np.nonzero(np.diff(times) <= 0)[0]
+    if bad.size:
+        raise InputError(where, f"pose times are not increasing (row {bad[0] + 2}: {times[bad[0] + 1]!r})")

@@ -1,0 +1,108 @@
+"""The project's own drive directory (written by the simulator and by converters).
+
+Layout: `meta.yaml` (`format: lidar2xodr-drive`, `version: 1`, `sensor: {name, mount: {x, y, z,
+roll, pitch, yaw}, max_range_m, intensity_scale, rate_hz}`, `origin: {lat, lon, alt, proj}`,
+`scans: {dir, format: pcd}`), `scans/NNNNNN.pcd` (binary PCD, fields x y z intensity t: sensor
+frame, native intensity scale, absolute per-point time in s), `poses.csv` (`time,x,y,z,roll,pitch,
+yaw,lat,lon,alt`: GNSS pose of the vehicle frame in the local world frame; optional).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from lidar2xodr.data import GeoOrigin, SensorInfo
+from lidar2xodr.datasets.base import RawScan, ScanFileDataset, mount_from_xyzrpy
+from lidar2xodr.datasets.pointfiles import read_scan_file, scan_files
+from lidar2xodr.datasets.poses import read_pose_csv
+from lidar2xodr.errors import InputError
+
+FORMAT_NAME = "lidar2xodr-drive"
+
+
+def is_drive(path: Path) -> bool:
+    meta = path / "meta.yaml"
+    if not meta.is_file():
+        return False
+    try:
+        raw = yaml.safe_load(meta.read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError):
+        return True  # claimed by its name; DriveDataset reports the problem
+    return isinstance(raw, dict) and raw.get("format") == FORMAT_NAME
+
+
+def _number(meta: Path, where: str, value: Any, default: float | None = None) -> float:
+    if value is None and default is not None:
+        return default
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        raise InputError(meta, f"{where}: expected a number, found {value!r}") from None
+    if not np.isfinite(out):
+        raise InputError(meta, f"{where}: not finite")
+    return out
+
+
+class DriveDataset(ScanFileDataset):
+    """Reader of DRIVE/meta.yaml + scans/*.pcd + poses.csv."""
+
+    def __init__(self, path: Path) -> None:
+        super().__init__()
+        self.path = path
+        meta_path = path / "meta.yaml"
+        try:
+            meta = yaml.safe_load(meta_path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise InputError(meta_path, "missing: a drive directory needs meta.yaml") from None
+        except (OSError, yaml.YAMLError) as exc:
+            raise InputError(meta_path, f"cannot read: {exc}") from None
+        if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
+            raise InputError(meta_path, f"'format' must be {FORMAT_NAME!r}")
+        if meta.get("version") != 1:
+            raise InputError(meta_path, f"unsupported version {meta.get('version')!r} (this reader knows 1)")
+        sensor = meta.get("sensor")
+        if not isinstance(sensor, dict):
+            raise InputError(meta_path, "missing 'sensor' mapping")
+        mount = sensor.get("mount")
+        if not isinstance(mount, dict):
+            raise InputError(meta_path, "sensor.mount must map x, y, z, roll, pitch, yaw")
+        m = {k: _number(meta_path, f"sensor.mount.{k}", mount.get(k), 0.0 if k != "z" else None)
+             for k in ("x", "y", "z", "roll", "pitch", "yaw")}
+        scale = _number(meta_path, "sensor.intensity_scale", sensor.get("intensity_scale"), 1.0)
+        if scale <= 0:
+            raise InputError(meta_path, "sensor.intensity_scale must be positive")
+        self.sensor = SensorInfo(
+            name=str(sensor.get("name", "unknown")),
+            mount=mount_from_xyzrpy(**m),
+            max_range_m=_number(meta_path, "sensor.max_range_m", sensor.get("max_range_m"), 200.0),
+            intensity_scale=scale,
+        )
+        self.intensity_scale = scale
+        self.rate_hz = _number(meta_path, "sensor.rate_hz", sensor.get("rate_hz"), 10.0)
+        origin = meta.get("origin") or {}
+        if not isinstance(origin, dict):
+            raise InputError(meta_path, "'origin' must be a mapping lat, lon, alt, proj")
+        self.origin = GeoOrigin(
+            lat=None if origin.get("lat") is None else _number(meta_path, "origin.lat", origin["lat"]),
+            lon=None if origin.get("lon") is None else _number(meta_path, "origin.lon", origin["lon"]),
+            alt=_number(meta_path, "origin.alt", origin.get("alt"), 0.0),
+            proj=origin.get("proj"),
+        )
+        scans = meta.get("scans") or {}
+        scan_dir = path / str(scans.get("dir", "scans"))
+        if not scan_dir.is_dir():
+            raise InputError(scan_dir, "scan folder missing")
+        self.items = scan_files(scan_dir)
+        if not self.items:
+            raise InputError(scan_dir, "no scan files found")
+        self.names = [str(p) for p in self.items]
+        poses = path / "poses.csv"
+        if poses.is_file():
+            self._trajectory, _ = read_pose_csv(poses)
+
+    def _read(self, k: int) -> RawScan:
+        return read_scan_file(self.items[k])
