@@ -50,6 +50,15 @@ class MarkingsConfig(_Section):
     search_radius_m: float = Field(1.75, description="paper: ball radius (half the minimum lane width)")
     combine_search_m: float = Field(63.0, description="paper: Combine search beyond each candidate end")
     min_cluster_points: int = Field(5, description="ours: smaller clusters are noise")
+    dbscan_voxel_m: float = Field(0.2, description="ours: DBSCAN runs on point-count-weighted voxel centroids of "
+                                  "this size, which bounds its memory on 50 km drives")
+    line_ransac_iterations: int = Field(32, description="ours: line hypotheses per cluster (vectorised RANSAC)")
+    min_direction_length_m: float = Field(1.0, description="ours: shorter clusters take the chord to the previous "
+                                          "centre as direction (their own RANSAC direction is noise)")
+    segment_tolerance_m: float = Field(0.5, description="ours: point-to-segment distance that adds a missed cluster")
+    search_z_tolerance_m: float = Field(1.0, description="ours: height gate of the ball search (keeps bridges apart)")
+    combine_max_angle_deg: float = Field(30.0, description="ours: candidates meeting at a larger angle are not combined")
+    seed: int = Field(0, description="seed of the line RANSAC")
 
 
 class LanesConfig(_Section):

@@ -1,0 +1,244 @@
+"""Synthetic marking clouds from a parametric road, with the truth to test against.
+
+The road is a centreline built from pieces (straight, constant-radius arc, clothoid) with lanes
+of given widths. Its lines are painted like a German motorway: solid 0.30 m edges, broken 0.15 m
+6 m / 12 m lane lines. Points are drawn like an accumulated sparse LiDAR: a Poisson number of
+points per painted area (`density` per square metre of paint, thinner away from the ego lane),
+Gaussian point noise, a GNSS offset per scan, occlusion gaps on some lines, spurious bright points
+and blobs, an optional added (exit) lane that appears and disappears along tapers, and an
+optional guard-rail-like line of points far outside. Everything is seeded.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from lidar2xodr.data import GeoOrigin, GroundPlanes, MarkingCloud, Trajectory
+
+
+@dataclass
+class Piece:
+    """One centreline piece: curvature goes linearly from k0 to k1 (1/m, left positive) over length."""
+
+    length: float
+    k0: float = 0.0
+    k1: float = 0.0
+
+
+def straight(length: float) -> Piece:
+    return Piece(length)
+
+
+def arc(length: float, radius: float) -> Piece:
+    return Piece(length, 1.0 / radius, 1.0 / radius)
+
+
+def clothoid(length: float, k0: float, k1: float) -> Piece:
+    return Piece(length, k0, k1)
+
+
+@dataclass
+class Line:
+    """A painted line: offset t(s) from the base centreline (left positive), where it exists."""
+
+    name: str
+    offset: float
+    kind: str  # solid | broken
+    width: float
+    s_start: float
+    s_end: float
+    dash: float = 6.0
+    gap: float = 12.0
+    phase: float = 0.0
+    taper: tuple[float, float, float, float] | None = None  # (s_a, s_b, taper length, shift)
+    gaps: list[tuple[float, float]] = field(default_factory=list)  # occluded s intervals
+
+    def t(self, s: np.ndarray) -> np.ndarray:
+        out = np.full(np.shape(s), self.offset, dtype=np.float64)
+        if self.taper is not None:
+            out += self.taper[3] * taper_ramp(np.asarray(s, dtype=np.float64), *self.taper[:3])
+        return out
+
+
+def smoothstep(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+def taper_ramp(s: np.ndarray, s_a: float, s_b: float, length: float) -> np.ndarray:
+    """0 before s_a, rises to 1 over `length`, stays 1, falls back to 0 at s_b."""
+    return smoothstep((s - s_a) / length) * smoothstep((s_b - s) / length)
+
+
+@dataclass
+class SynthRoad:
+    """What was drawn: the cloud and the truth (centreline, lines, lane counts)."""
+
+    cloud: MarkingCloud
+    lines: list[Line]
+    s: np.ndarray  # fine stations of the base centreline
+    xy: np.ndarray  # (M, 2)
+    normal: np.ndarray  # (M, 2) left normals
+    z: np.ndarray  # (M,)
+    exit_lane: tuple[float, float, float] | None  # (s_a, s_b, taper)
+    lane_widths: list[float]
+
+    def line_xy(self, line: Line, s: np.ndarray) -> np.ndarray:
+        """World x, y of a line at base stations s."""
+        x = np.interp(s, self.s, self.xy[:, 0])
+        y = np.interp(s, self.s, self.xy[:, 1])
+        nx = np.interp(s, self.s, self.normal[:, 0])
+        ny = np.interp(s, self.s, self.normal[:, 1])
+        t = line.t(s)
+        return np.stack([x + nx * t, y + ny * t], axis=1)
+
+    def lane_count(self, s: np.ndarray) -> np.ndarray:
+        """Lanes of the carriageway at base stations s (the added lane counts where it is open)."""
+        n = np.full(np.shape(s), len(self.lane_widths), dtype=int)
+        if self.exit_lane is not None:
+            s_a, s_b, _ = self.exit_lane
+            n += ((s > s_a) & (s < s_b)).astype(int)
+        return n
+
+
+def _centreline(pieces: list[Piece], step: float = 0.25) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    total = sum(p.length for p in pieces)
+    s = np.arange(0.0, total + step, step)
+    kappa = np.zeros_like(s)
+    s0 = 0.0
+    for p in pieces:
+        m = (s >= s0) & (s <= s0 + p.length)
+        kappa[m] = p.k0 + (p.k1 - p.k0) * (s[m] - s0) / p.length
+        s0 += p.length
+    heading = np.concatenate([[0.0], np.cumsum(0.5 * (kappa[1:] + kappa[:-1]) * step)])
+    x = np.concatenate([[0.0], np.cumsum(0.5 * (np.cos(heading[1:]) + np.cos(heading[:-1])) * step)])
+    y = np.concatenate([[0.0], np.cumsum(0.5 * (np.sin(heading[1:]) + np.sin(heading[:-1])) * step)])
+    normal = np.stack([-np.sin(heading), np.cos(heading)], axis=1)
+    return s, np.stack([x, y], axis=1), normal
+
+
+def make_road(
+    pieces: list[Piece] | None = None,
+    lane_widths: tuple[float, ...] = (3.75, 3.75, 3.75),
+    density: float = 200.0,
+    noise: float = 0.03,
+    gnss_noise: float = 0.0,
+    occlusions: int = 6,
+    spurious: int = 300,
+    blobs: int = 20,
+    exit_lane: tuple[float, float, float] | None = None,
+    guard_rail: float | None = None,
+    ego_lane: int = 1,
+    start_xy: tuple[float, float] = (5.0, 2.0),
+    grade: float = 0.01,
+    seed: int = 0,
+) -> SynthRoad:
+    """Draw a marking cloud; `exit_lane` = (s_a, s_b, taper) adds a lane on the right."""
+    rng = np.random.default_rng(seed)
+    pieces = pieces or [straight(1000.0)]
+    s_fine, xy, normal = _centreline(pieces)
+    xy = xy + np.asarray(start_xy)
+    length = float(s_fine[-1])
+    z_fine = grade * s_fine + 0.5 * np.sin(s_fine / 400.0)
+
+    total_w = float(sum(lane_widths))
+    edges = total_w / 2.0 - np.concatenate([[0.0], np.cumsum(lane_widths)])
+    lines: list[Line] = []
+    for i, t in enumerate(edges):
+        outer = i in (0, len(edges) - 1)
+        phase = float(rng.uniform(0.0, 18.0))
+        if outer:
+            lines.append(Line(f"edge{i}", float(t), "solid", 0.30, 0.0, length))
+        else:
+            lines.append(Line(f"lane{i}", float(t), "broken", 0.15, 0.0, length, phase=phase))
+    if exit_lane is not None:
+        s_a, s_b, taper = exit_lane
+        right = lines[-1]
+        right.taper = (s_a, s_b, taper, -lane_widths[-1])
+        lines.append(Line("exit", right.offset, "broken", 0.30, s_a, s_b, dash=6.0, gap=6.0, phase=s_a))
+    for line in lines[1:]:
+        for _ in range(occlusions // max(1, len(lines) - 1) + int(rng.uniform() < 0.5)):
+            a = float(rng.uniform(0.0, length))
+            lines_gap = (a, a + float(rng.uniform(5.0, 30.0)))
+            line.gaps.append(lines_gap)
+
+    ego_t = edges[ego_lane] - lane_widths[ego_lane] / 2.0
+    chunks: list[np.ndarray] = []
+    for line in lines:
+        chunks.append(_paint(line, rng, density, ego_t))
+    st = np.concatenate(chunks) if chunks else np.zeros((0, 2))
+    if guard_rail is not None:
+        s_g = rng.uniform(0.0, length, int(length * 30))
+        t_g = edges[-1] - guard_rail + rng.normal(0.0, 0.05, len(s_g))
+        st = np.concatenate([st, np.stack([s_g, t_g], axis=1)])
+    if spurious:
+        s_sp = rng.uniform(0.0, length, spurious)
+        t_sp = rng.uniform(edges[-1] - 6.0, edges[0] + 6.0, spurious)
+        st = np.concatenate([st, np.stack([s_sp, t_sp], axis=1)])
+    for _ in range(blobs):
+        c = np.array([rng.uniform(0.0, length), rng.uniform(edges[-1], edges[0])])
+        blob = c + rng.uniform(-1.0, 1.0, (40, 2)) * np.array([1.0, 0.5])
+        st = np.concatenate([st, blob])
+
+    s_pts, t_pts = st[:, 0], st[:, 1]
+    keep = (s_pts >= 0.0) & (s_pts <= length)
+    s_pts, t_pts = s_pts[keep], t_pts[keep]
+    px = np.interp(s_pts, s_fine, xy[:, 0]) + np.interp(s_pts, s_fine, normal[:, 0]) * t_pts
+    py = np.interp(s_pts, s_fine, xy[:, 1]) + np.interp(s_pts, s_fine, normal[:, 1]) * t_pts
+    pz = np.interp(s_pts, s_fine, z_fine) + 0.025 * t_pts
+    xyz = np.stack([px, py, pz], axis=1) + rng.normal(0.0, noise, (len(s_pts), 3))
+
+    scan_step = 2.5
+    n_scans = int(length / scan_step) + 1
+    scan = np.clip(((s_pts - rng.uniform(5.0, 60.0, len(s_pts))) / scan_step).astype(int), 0, n_scans - 1)
+    if gnss_noise > 0:
+        xyz += rng.normal(0.0, gnss_noise, (n_scans, 3))[scan]
+    order = np.lexsort((xyz[:, 0], scan))
+    xyz, scan = xyz[order], scan[order]
+
+    s_scan = np.arange(n_scans) * scan_step
+    ex = np.interp(s_scan, s_fine, xy[:, 0]) + np.interp(s_scan, s_fine, normal[:, 0]) * ego_t
+    ey = np.interp(s_scan, s_fine, xy[:, 1]) + np.interp(s_scan, s_fine, normal[:, 1]) * ego_t
+    heading = np.arctan2(-np.interp(s_scan, s_fine, normal[:, 0]), np.interp(s_scan, s_fine, normal[:, 1]))
+    poses = np.tile(np.eye(4), (n_scans, 1, 1))
+    poses[:, 0, 0], poses[:, 0, 1] = np.cos(heading), -np.sin(heading)
+    poses[:, 1, 0], poses[:, 1, 1] = np.sin(heading), np.cos(heading)
+    poses[:, 0, 3], poses[:, 1, 3] = ex, ey
+    poses[:, 2, 3] = np.interp(s_scan, s_fine, z_fine)
+    times = s_scan / 30.0
+    planes = GroundPlanes(times, np.tile([0.0, 0.0, 1.0], (n_scans, 1)), poses[:, :3, 3].copy())
+    cloud = MarkingCloud(
+        xyz=xyz,
+        intensity=np.full(len(xyz), 0.8, dtype=np.float32),
+        scan_index=scan.astype(np.int32),
+        time=times[scan],
+        planes=planes,
+        trajectory=Trajectory(times, poses),
+        origin=GeoOrigin(),
+    )
+    return SynthRoad(cloud, lines, s_fine, xy, normal, z_fine, exit_lane, list(lane_widths))
+
+
+def _paint(line: Line, rng: np.random.Generator, density: float, ego_t: float) -> np.ndarray:
+    """(s, t) points of one line: Poisson points on its paint, thinner far from the ego lane."""
+    if line.kind == "solid":
+        intervals = [(line.s_start, line.s_end)]
+    else:
+        period = line.dash + line.gap
+        k0 = np.floor((line.s_start - line.phase) / period)
+        starts = line.phase + period * np.arange(k0, np.ceil((line.s_end - line.phase) / period) + 1)
+        intervals = [(max(a, line.s_start), min(a + line.dash, line.s_end)) for a in starts]
+    thin = float(np.clip(1.0 - abs(line.offset - ego_t) / 25.0, 0.3, 1.0))
+    out = []
+    for a, b in intervals:
+        if b <= a:
+            continue
+        n = rng.poisson(density * thin * line.width * (b - a))
+        s = rng.uniform(a, b, n)
+        for g0, g1 in line.gaps:
+            s = s[(s < g0) | (s > g1)]
+        t = line.t(s) + rng.uniform(-line.width / 2, line.width / 2, len(s))
+        out.append(np.stack([s, t], axis=1))
+    return np.concatenate(out) if out else np.zeros((0, 2))
