@@ -153,5 +153,35 @@ def demo(
     run_demo(out_dir, length_m=length_m, seed=seed, console=console, out=out)
 
 
+@app.command()
+@_clean_errors
+def scenario(
+    drive: Path = typer.Argument(..., help="Drive folder or track file: objects.csv, detections, aiMotive, A9 CSV."),
+    map_path: Path = typer.Option(..., "--map", help="The OpenDRIVE map to place the traffic on."),
+    out_path: Path = typer.Option(..., "--out", "-o", help="The OpenSCENARIO file to write (.xosc)."),
+    ego_path: Path | None = typer.Option(None, "--ego", help="Ego poses CSV (time,x,y,z,roll,pitch,yaw) "
+                                          "when the drive has none, e.g. from LiDAR odometry."),
+    json_out: Path | None = typer.Option(None, "--json", help="Write the summary as JSON."),
+    config: Path | None = ConfigOpt,
+) -> None:
+    """OpenSCENARIO of the recorded traffic on a map, with cut-ins, cut-outs and lane changes."""
+    from lidar2xodr.config import Config
+    from lidar2xodr.export_scenario import export_scenario, print_summary
+    from lidar2xodr.opendrive import OpenDriveMap
+    from lidar2xodr.tracks import load_tracks, read_poses_csv
+
+    cfg = Config.load(config)
+    ego = read_poses_csv(ego_path) if ego_path else None
+    geo = OpenDriveMap.load(map_path).geo_reference
+    tracks = load_tracks(drive, ego, cfg=cfg, geo_reference=geo)
+    ego = ego if ego is not None else tracks.ego
+    if ego is None:
+        raise InputError(drive, "no ego trajectory: the drive has no poses.csv; pass --ego POSES.csv")
+    summary = export_scenario(ego, tracks, map_path, out_path, cfg)
+    print_summary(summary, out, console)
+    if json_out:
+        write_json(json_out, summary.to_dict())
+
+
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(app())

@@ -45,6 +45,8 @@ from typing import Any
 
 import numpy as np
 from lxml import etree
+from rich.console import Console
+from rich.table import Table
 from scenariogeneration import xosc
 from scipy.spatial import cKDTree
 
@@ -287,7 +289,7 @@ def detect_manoeuvres(ego: _Entity, others: list[_Entity], cfg: ScenarioConfig, 
     """Ego lane changes, cut-ins, cut-outs and other lane changes (see the module doc)."""
     found: list[Manoeuvre] = []
     for tc, _, road, a, b, d in _lane_changes(ego, cfg.lane_change_dwell_s):
-        found.append(Manoeuvre("ego_lane_change", EGO, round(tc - t0, 3), road, a, b, d))
+        found.append(Manoeuvre("ego_lane_change", EGO, round(float(tc - t0), 3), road, a, b, d))
     ew = ego.where
     for e in others:
         if e.category == "pedestrian":
@@ -306,7 +308,7 @@ def detect_manoeuvres(ego: _Entity, others: list[_Entity], cfg: ScenarioConfig, 
             elif near and ego_lane == (road, a):
                 kind = "cut_out"
             dist = round(ahead, 2) if kind != "lane_change" else None
-            found.append(Manoeuvre(kind, e.name, round(tc - t0, 3), road, a, b, d, dist))
+            found.append(Manoeuvre(kind, e.name, round(float(tc - t0), 3), road, a, b, d, dist))
     return sorted(found, key=lambda m: (m.time_s, m.actor))
 
 
@@ -525,3 +527,24 @@ def _annotate(root: etree._Element, manoeuvres: list[Manoeuvre], warnings: list[
             if m.distance_m is not None:
                 text += f", {m.distance_m:.1f} m ahead of the ego"
             g[0].addprevious(_comment(text))
+
+
+def print_summary(summary: ScenarioSummary, out: Console, err: Console) -> None:
+    """Entities, timing and manoeuvres on `out`; every warning about the input on `err`."""
+    table = Table(title=f"scenario {summary.path}", show_header=True)
+    table.add_column("item")
+    table.add_column("value", justify="right")
+    table.add_row("map", str(summary.map_path))
+    table.add_row("duration", f"{summary.duration_s:.2f} s")
+    table.add_row("entities (incl. ego)", str(len(summary.entities)))
+    table.add_row("appear later / leave early", f"{len(summary.late_entities)} / {len(summary.removed_entities)}")
+    table.add_row("polyline vertices", str(summary.vertices))
+    for key in ("tracks.dropped_short", "tracks.dropped_jumpy", "tracks.smoothed", "off_map_tracks"):
+        table.add_row(key.replace("tracks.", "tracks ").replace("_", " "), str(summary.counts.get(key, 0)))
+    out.print(table)
+    for m in summary.manoeuvres:
+        where = f", {m.distance_m:.1f} m ahead" if m.distance_m is not None else ""
+        text = f"{m.time_s:8.2f} s  {m.kind:<16} {m.actor}: lane {m.from_lane} -> {m.to_lane} ({m.direction})"
+        out.print(text + where, highlight=False)
+    for w in summary.warnings:
+        err.print(f"[yellow]warning:[/] {w}", highlight=False, soft_wrap=True)
