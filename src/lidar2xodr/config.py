@@ -116,7 +116,7 @@ class ScenarioConfig(_Section):
     min_track_samples: int = Field(5, description="ours: shorter tracks are dropped")
     min_track_duration_s: float = Field(0.5, description="ours: shorter tracks are dropped")
     max_gap_s: float = Field(1.0, description="ours: a track is split where no sample arrives for longer")
-    spike_m: float = Field(2.0, description="ours: samples this far from the running median (5 samples) are spikes")
+    spike_m: float = Field(2.0, description="ours: this far from the neighbours' robust prediction = spike")
     max_spike_share: float = Field(0.3, description="ours: a larger share of spikes drops the track (jumpy)")
     max_speed_mps: float = Field(80.0, description="ours: faster implied motion between samples splits a track")
     gate_m: float = Field(3.0, description="ours: association gate (doubled for 1-sample tracks)")

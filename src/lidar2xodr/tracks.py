@@ -24,7 +24,7 @@ constant-velocity predictions with a gate). Vehicle-frame rows need the ego traj
 
 Decisions (see ScenarioConfig for the numbers):
 - Cleaning per track: samples are sorted by time (out-of-order samples counted), duplicates dropped;
-  spikes (farther than `spike_m` from the running median of 5 samples) removed; the track is split
+  spikes (farther than `spike_m` from the robust prediction of their 4 neighbours) removed; the track is split
   where no sample arrives for `max_gap_s` or the implied speed exceeds `max_speed_mps`; pieces with
   fewer than `min_track_samples` samples or shorter than `min_track_duration_s` are dropped, and a
   track with more than `max_spike_share` spikes is dropped as jumpy.
@@ -53,7 +53,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.ndimage import gaussian_filter1d, median_filter
+from scipy.ndimage import gaussian_filter1d
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation, Slerp
@@ -605,13 +605,29 @@ def _natural_key(s: str) -> tuple[int, float, str]:
         return 1, 0.0, s
 
 
+def spike_residual(t: np.ndarray, xy: np.ndarray, half: int = 2) -> np.ndarray:
+    """Distance of each sample from the robust constant-velocity prediction of its neighbours.
+
+    For sample i: v = median of the 2*half finite-difference velocities around i; the prediction is
+    the median over the neighbours j (|i - j| <= half, j != i) of p_j + v (t_i - t_j). A lone spike
+    moves neither median, so only the spike itself gets a large residual (a plain running median of
+    positions would also flag its neighbours once the spike is as large as the motion per sample).
+    """
+    n = len(t)
+    idx = np.arange(n)
+    v = np.diff(xy, axis=0) / np.diff(t)[:, None]
+    k = np.clip(idx[:, None] + np.arange(-half, half)[None, :], 0, n - 2)
+    v_med = np.median(v[k], axis=1)
+    offs = np.r_[np.arange(-half, 0), np.arange(1, half + 1)]
+    j = np.clip(idx[:, None] + offs[None, :], 0, n - 1)
+    pred = xy[j] + v_med[:, None, :] * (t[:, None] - t[j])[..., None]
+    return np.linalg.norm(xy - np.median(pred, axis=1), axis=1)
+
+
 def _split_clean(t: np.ndarray, xyz: np.ndarray, cfg: ScenarioConfig, counts: Counter[str]) -> list[np.ndarray]:
     """Index arrays of the usable pieces of one time-sorted, duplicate-free track."""
     n = len(t)
-    keep = np.ones(n, dtype=bool)
-    if n >= 5:
-        med = median_filter(xyz[:, :2], size=(5, 1), mode="nearest")
-        keep = np.linalg.norm(xyz[:, :2] - med, axis=1) <= cfg.spike_m
+    keep = np.ones(n, dtype=bool) if n < 5 else spike_residual(t, xyz[:, :2]) <= cfg.spike_m
     spikes = int((~keep).sum())
     counts["spikes_removed"] += spikes
     if n and spikes > cfg.max_spike_share * n:
