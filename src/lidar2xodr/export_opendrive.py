@@ -166,69 +166,61 @@ def _wrap(a: float) -> float:
     return float((a + math.pi) % (2 * math.pi) - math.pi)
 
 
-def _fit_piece(p: np.ndarray, q: np.ndarray, w: np.ndarray, tangent: np.ndarray | None,
-               span: float) -> np.ndarray:
-    """Weighted cubic C(p) = c0 + c1 p + c2 p^2 + c3 p^3 through local points q (origin = start).
+def _hermite(p: np.ndarray) -> np.ndarray:
+    """Cubic Hermite basis (h00, h10, h01, h11) at p, shape (m, 4)."""
+    p2, p3 = p * p, p * p * p
+    return np.stack([2 * p3 - 3 * p2 + 1, p3 - 2 * p2 + p, 3 * p2 - 2 * p3, p3 - p2], axis=1)
 
-    With `tangent` the start is fixed at the origin and c1 = lambda * tangent (lambda > 0 free).
-    Returns the (4, 2) coefficients.
+
+def _fit_hermite(s: np.ndarray, xy: np.ndarray, breaks: np.ndarray, cfg: ExportConfig) -> tuple[np.ndarray, ...]:
+    """One least-squares solve for positions P and tangents D (per metre of station) at every break.
+
+    Piece k is the Hermite cubic of (P_k, D_k, P_k+1, D_k+1), so neighbours share end point and
+    tangent by construction. Its residuals cover its own stations plus the look-back and look-ahead
+    (its cubic extrapolated), and the samples nearest its ends are weighted up (paper Alg. 3).
     """
-    sw = np.sqrt(w)[:, None]
-    if tangent is None:
-        vander = np.stack([np.ones_like(p), p, p**2, p**3], axis=1) * sw
-        coef = np.linalg.lstsq(vander, q * sw, rcond=None)[0]
-        return coef
-    zero = np.zeros_like(p)
-    rows_x = np.stack([tangent[0] * p, p**2, zero, p**3, zero], axis=1)
-    rows_y = np.stack([tangent[1] * p, zero, p**2, zero, p**3], axis=1)
-    design = np.vstack([rows_x * sw, rows_y * sw])
-    rhs = np.concatenate([q[:, 0] * sw[:, 0], q[:, 1] * sw[:, 0]])
-    lam, c2x, c2y, c3x, c3y = np.linalg.lstsq(design, rhs, rcond=None)[0]
-    if lam < 0.2 * span:  # degenerate data: keep the tangent at the piece's nominal speed
-        lam = span
-        design = design[:, 1:]
-        rhs = rhs - lam * np.concatenate([tangent[0] * p * sw[:, 0], tangent[1] * p * sw[:, 0]])
-        c2x, c2y, c3x, c3y = np.linalg.lstsq(design, rhs, rcond=None)[0]
-    return np.array([[0.0, 0.0], lam * tangent, [c2x, c2y], [c3x, c3y]])
-
-
-def _fit_plan(s: np.ndarray, xy: np.ndarray, breaks: np.ndarray, cfg: ExportConfig) -> _Plan:
-    """Paper Alg. 3 with look-back/look-ahead and endpoint weights, continuous by construction."""
+    n = len(breaks) - 1
     look = cfg.look_fraction * cfg.piece_length_m
-    rows: list[tuple[float, float, float, float, float, np.ndarray, np.ndarray]] = []
-    start: tuple[float, float, float] | None = None
-    s_odr = 0.0
-    for k in range(len(breaks) - 1):
-        a, b = float(breaks[k]), float(breaks[k + 1])
+    origin = xy[0]
+    rows: list[np.ndarray] = []
+    rhs: list[np.ndarray] = []
+    for k in range(n):
+        a, b = breaks[k], breaks[k + 1]
         span = b - a
-        m = (s >= a - look - 1e-9) & (s <= b + look + 1e-9)
+        m = np.flatnonzero((s >= a - look - 1e-9) & (s <= b + look + 1e-9))
         p = (s[m] - a) / span
-        pts = xy[m]
         w = np.ones(len(p))
         w[np.argmin(np.abs(p))] = cfg.endpoint_weight
         w[np.argmin(np.abs(p - 1.0))] = cfg.endpoint_weight
-        inside = (p >= 0) & (p <= 1)
-        origin = np.array(start[:2]) if start is not None else pts[inside][0]
-        mean = pts[inside].mean(axis=0) - pts[inside][0]
-        theta = math.atan2(mean[1], mean[0])  # paper: heading of the mean of the piece's points
-        rot = np.array([[math.cos(theta), math.sin(theta)], [-math.sin(theta), math.cos(theta)]])
-        q = (pts - origin) @ rot.T
-        tangent = None
-        if start is not None:
-            tangent = np.array([math.cos(start[2] - theta), math.sin(start[2] - theta)])
-        coef = _fit_piece(p, q, w, tangent, span)
-        if start is None:
-            c0_world = origin + coef[0] @ rot
-            hdg = theta + math.atan2(coef[1, 1], coef[1, 0])
-            x0, y0 = float(c0_world[0]), float(c0_world[1])
-        else:
-            x0, y0, hdg = start
-        hdg = _wrap(hdg)
-        back = hdg - theta
-        rot_back = np.array([[math.cos(back), math.sin(back)], [-math.sin(back), math.cos(back)]])
-        local = coef @ rot_back.T
-        u = np.array([0.0, float(np.hypot(*local[1])), float(local[2, 0]), float(local[3, 0])])
-        v = np.array([0.0, 0.0, float(local[2, 1]), float(local[3, 1])])
+        basis = _hermite(p) * np.array([1.0, span, 1.0, span]) * np.sqrt(w)[:, None]
+        for dim in (0, 1):
+            block = np.zeros((len(p), 4 * (n + 1)))
+            block[:, [4 * k + dim, 4 * k + 2 + dim, 4 * k + 4 + dim, 4 * k + 6 + dim]] = basis
+            rows.append(block)
+            rhs.append((xy[m, dim] - origin[dim]) * np.sqrt(w))
+    sol = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)[0].reshape(n + 1, 4)
+    return sol[:, :2] + origin, sol[:, 2:]
+
+
+def _fit_plan(s: np.ndarray, xy: np.ndarray, breaks: np.ndarray, cfg: ExportConfig) -> _Plan:
+    """Hermite fit, then each piece written in the frame of its start tangent, chained on the written numbers.
+
+    Piece k+1 starts at the end of piece k as a reader evaluates the written attributes, with its
+    heading, so rounding never opens a gap or a kink.
+    """
+    pos, tan = _fit_hermite(s, xy, breaks, cfg)
+    rows: list[tuple[float, float, float, float, float, np.ndarray, np.ndarray]] = []
+    start = (float(pos[0, 0]), float(pos[0, 1]), math.atan2(tan[0, 1], tan[0, 0]))
+    s_odr = 0.0
+    for k in range(len(breaks) - 1):
+        span = breaks[k + 1] - breaks[k]
+        c1 = span * tan[k]
+        c2 = -3 * pos[k] - 2 * span * tan[k] + 3 * pos[k + 1] - span * tan[k + 1]
+        c3 = 2 * pos[k] + span * tan[k] - 2 * pos[k + 1] + span * tan[k + 1]
+        x0, y0, hdg = start[0], start[1], _wrap(start[2])
+        ch, sh = math.cos(hdg), math.sin(hdg)
+        u = np.array([0.0, float(np.hypot(*c1)), ch * c2[0] + sh * c2[1], ch * c3[0] + sh * c3[1]])
+        v = np.array([0.0, 0.0, -sh * c2[0] + ch * c2[1], -sh * c3[0] + ch * c3[1]])
         speed = np.hypot(u[1] + 2 * u[2] * _GL_X + 3 * u[3] * _GL_X**2, v[1] + 2 * v[2] * _GL_X + 3 * v[3] * _GL_X**2)
         length = float(speed @ _GL_W)
         rows.append((s_odr, x0, y0, hdg, length, u, v))
@@ -259,12 +251,14 @@ class _Records:
 
 
 def _spline_records(x: np.ndarray, y: np.ndarray, breaks: np.ndarray, smooth: float = _GEOMETRY_SMOOTH,
-                    constraints: tuple[tuple[float, int, float], ...] = ()) -> _Records:
-    """Least-squares cubic B-spline (C2) on `breaks` with a P-spline penalty and equality constraints.
+                    constraints: tuple[tuple[float, int, float], ...] = (), c1: bool = False) -> _Records:
+    """Least-squares cubic B-spline on `breaks` with a P-spline penalty and equality constraints.
 
-    Each constraint is (x, derivative order, value). Returns one record per break interval.
+    C2 at the breaks, or only C1 with `c1` (double interior knots). Each constraint is
+    (x, derivative order, value). Returns one record per break interval.
     """
-    knots = np.r_[[breaks[0]] * 3, breaks, [breaks[-1]] * 3]
+    inner = np.repeat(breaks[1:-1], 2 if c1 else 1)
+    knots = np.r_[[breaks[0]] * 4, inner, [breaks[-1]] * 4]
     nb = len(knots) - 4
     basis = BSpline(knots, np.eye(nb), 3, extrapolate=True)
     design = basis(np.clip(x, breaks[0], breaks[-1]))
@@ -334,10 +328,15 @@ def _smoothstep(x: np.ndarray) -> np.ndarray:
 
 
 def _taper(w: np.ndarray, dist: np.ndarray, taper: float) -> np.ndarray:
-    """Width target of a lane that opens at dist = 0: the data, capped by a smoothstep from 0."""
-    far = (dist >= taper) & (dist <= taper + 20.0)
-    ref = float(np.median(w[far])) if far.any() else float(w[np.argmax(dist)])
-    return np.minimum(w, ref * _smoothstep(dist / taper))
+    """Width target of a lane that opens at dist = 0: within `taper` the data, capped by a smoothstep from 0.
+
+    Markings that already taper stay as measured; a lane whose markings start at full width opens
+    along the smoothstep to its median width beyond the taper.
+    """
+    far = dist >= taper
+    full = float(np.median(w[far])) if far.any() else float(np.max(w))
+    cap = np.where(far, np.inf, full * _smoothstep(dist / taper))
+    return np.minimum(w, cap)
 
 
 def _link(prev_iv: np.ndarray, next_iv: np.ndarray) -> dict[int, int]:
@@ -411,12 +410,12 @@ def _lane_fit(grid_s: np.ndarray, t_data: dict[int, np.ndarray], sections: list[
                 cons.append((s1, 0, 0.0))
             if i == 0 and (j > 0 and i not in preds[j] or j < len(sections) - 1 and i not in succs[j]):
                 lead = arr[1] + w
-            widths.append(_spline_records(s, w, breaks, constraints=tuple(cons)))
+            widths.append(_spline_records(s, w, breaks, constraints=tuple(cons), c1=True))
         fits.append(_SectionFit(s0, s1, ids, widths, preds[j], succs[j]))
         offset_s.append(s)
         offset_t.append(lead)
     all_breaks = np.unique(np.concatenate([_uniform_breaks(a, b, cfg.lane_record_m) for a, b, _ in sections]))
-    offset = _spline_records(np.concatenate(offset_s), np.concatenate(offset_t), all_breaks)
+    offset = _spline_records(np.concatenate(offset_s), np.concatenate(offset_t), all_breaks, c1=True)
     return offset, fits
 
 
