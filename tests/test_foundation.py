@@ -1,0 +1,107 @@
+"""Configuration, atomic output, CLI error handling and the project's own demo road."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from lidar2xodr.cli import app
+from lidar2xodr.config import Config
+from lidar2xodr.demo_road import ADDED_LANE, LANE_WIDTH, write_demo_road
+from lidar2xodr.errors import InputError
+from lidar2xodr.fileio import atomic_dir, atomic_path
+
+runner = CliRunner()
+
+
+def test_config_defaults_are_the_papers_values() -> None:
+    cfg = Config()
+    assert cfg.extraction.ground_margin_m == 0.15
+    assert cfg.extraction.reflectivity_threshold == 0.5
+    assert cfg.extraction.outlier_radius_m == 0.5 and cfg.extraction.outlier_min_neighbors == 4
+    assert cfg.markings.slice_threshold_m == 30.0 and cfg.markings.slice_length_m == 6.0
+    assert cfg.markings.gamma == 0.5
+    assert (cfg.markings.search_step_m, cfg.markings.search_max_m, cfg.markings.search_radius_m) == (3.0, 27.0, 1.75)
+    assert cfg.markings.combine_search_m == 63.0
+    assert cfg.export.piece_length_m == 100.0 and cfg.export.look_fraction == 0.125
+
+
+def test_config_load_overrides_and_rejects(tmp_path: Path) -> None:
+    good = tmp_path / "c.yaml"
+    good.write_text("markings:\n  search_radius_m: 2.0\n")
+    assert Config.load(good).markings.search_radius_m == 2.0
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("markings:\n  no_such_field: 1\n")
+    with pytest.raises(InputError, match="no_such_field"):
+        Config.load(bad)
+    with pytest.raises(InputError, match="not found"):
+        Config.load(tmp_path / "missing.yaml")
+
+
+def test_atomic_path_leaves_nothing_on_failure(tmp_path: Path) -> None:
+    target = tmp_path / "map.xodr"
+    target.write_text("old")
+    with pytest.raises(RuntimeError), atomic_path(target) as tmp:
+        tmp.write_text("half")
+        raise RuntimeError("crash")
+    assert target.read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["map.xodr"]
+    with atomic_path(target) as tmp:
+        tmp.write_text("new")
+    assert target.read_text() == "new"
+
+
+def test_atomic_dir_replaces_whole(tmp_path: Path) -> None:
+    target = tmp_path / "report"
+    with pytest.raises(RuntimeError), atomic_dir(target) as tmp:
+        (tmp / "a.txt").write_text("x")
+        raise RuntimeError("crash")
+    assert not target.exists()
+    with atomic_dir(target) as tmp:
+        (tmp / "a.txt").write_text("x")
+    assert (target / "a.txt").read_text() == "x"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report"]
+
+
+def test_cli_version_and_help() -> None:
+    res = runner.invoke(app, ["--version"])
+    assert res.exit_code == 0 and "lidar2xodr" in res.stdout
+    res = runner.invoke(app, ["--help"])
+    assert res.exit_code == 0
+    for cmd in ("build", "compare", "check", "demo"):
+        assert cmd in res.stdout
+
+
+def test_cli_bad_input_is_one_line_exit_2(tmp_path: Path) -> None:
+    """A missing or broken map: one line naming the file, exit code 2, no traceback."""
+    broken = tmp_path / "broken.xodr"
+    broken.write_text("<OpenDRIVE><road")
+    for args in (["compare", str(tmp_path / "nope.xodr"), str(broken)], ["compare", str(broken), str(broken)]):
+        proc = subprocess.run([sys.executable, "-m", "lidar2xodr.cli", *args], capture_output=True, text=True)
+        assert proc.returncode == 2, proc.stderr
+        assert "Traceback" not in proc.stderr
+        lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+        assert len(lines) == 1 and ".xodr" in lines[0]
+
+
+def test_demo_road_is_deterministic_and_as_designed(tmp_path: Path) -> None:
+    from lidar2xodr.opendrive import OpenDriveMap
+
+    a = write_demo_road(tmp_path / "a.xodr").read_bytes()
+    b = write_demo_road(tmp_path / "b.xodr").read_bytes()
+    assert a == b
+    odr = OpenDriveMap.load(tmp_path / "a.xodr")
+    (road,) = odr.roads.values()
+    assert road.length == pytest.approx(3000.0)
+    s = np.array([100.0, ADDED_LANE[0] + 250.0, 2900.0])
+    lanes = [sum(1 for ln in road.lane_sections[i].lanes.values() if ln.type == "driving")
+             for i in road.section_index(s)]
+    assert lanes == [3, 4, 3]
+    width = road.border_t(s, -3) - road.border_t(s, -4)
+    assert width[1] == pytest.approx(LANE_WIDTH, abs=1e-6)
+    assert road.superelevation(np.array([800.0]))[0] == pytest.approx(-0.025)
