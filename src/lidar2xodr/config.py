@@ -34,6 +34,25 @@ class ExtractionConfig(_Section):
     max_bad_scan_share: float = Field(0.1, description="ours: abort when more scans than this are unreadable")
     odometry: Literal["auto", "gnss", "lidar"] = Field("auto", description="auto = GNSS poses when present")
     seed: int = Field(0, description="seed of every random choice (RANSAC)")
+    ground_below_m: float = Field(0.3, description="ours: points this far below the plane still count as road "
+                                  "(range noise, crown); deeper ones are ditches or multipath")
+    ransac_range_m: float = Field(40.0, description="ours: the plane is fitted to ground within this radius "
+                                  "(local plane; far points are sparse and bend with the road)")
+    ransac_max_tilt_deg: float = Field(15.0, description="ours: plane normals tilted more from vehicle z are rejected")
+    ransac_sample_points: int = Field(4000, description="ours: points that score the RANSAC hypotheses")
+    auto_threshold_scans: int = Field(10, description="ours: scans whose ground intensities set the auto threshold")
+    auto_threshold_range_m: float = Field(40.0, description="ours: ground points within this radius feed it")
+    auto_threshold_min_separation: float = Field(
+        2.0, description="ours: Otsu classes closer than this (mean gap / pooled sigma) fall back to the fixed one")
+    pose_time_tolerance_s: float = Field(0.1, description="ours: point times may exceed the poses by this much")
+    odometry_voxel_m: float = Field(1.0, description="ours: KISS-ICP voxel size (highway structure is coarse)")
+    odometry_max_range_m: float = Field(80.0, description="ours: KISS-ICP uses points within this radius")
+    odometry_min_height_m: float = Field(0.3, description="ours: KISS-ICP sees only points this far above the "
+                                         "ground plane (the flat road has no longitudinal structure)")
+    odometry_threshold_m: float | None = Field(1.0, description="ours: fixed ICP kernel; None = KISS-ICP adaptive")
+    odometry_iterations: int = Field(2, description="ours: deskew-and-register rounds per scan")
+    odometry_max_speed_mps: float = Field(70.0, description="ours: upper end of the start-speed search")
+    odometry_bootstrap_s: float = Field(0.3, description="ours: time between the two scans of the start-speed search")
 
 
 class MarkingsConfig(_Section):
@@ -53,11 +72,13 @@ class MarkingsConfig(_Section):
     dbscan_voxel_m: float = Field(0.2, description="ours: DBSCAN runs on point-count-weighted voxel centroids of "
                                   "this size, which bounds its memory on 50 km drives")
     line_ransac_iterations: int = Field(32, description="ours: line hypotheses per cluster (vectorised RANSAC)")
-    min_direction_length_m: float = Field(1.0, description="ours: shorter clusters take the chord to the previous "
-                                          "centre as direction (their own RANSAC direction is noise)")
+    min_direction_length_m: float = Field(1.0, description="ours: clusters shorter than this (or than 3x their "
+                                          "width) do not steer SearchMark: their RANSAC direction is noise")
     segment_tolerance_m: float = Field(0.5, description="ours: point-to-segment distance that adds a missed cluster")
     search_z_tolerance_m: float = Field(1.0, description="ours: height gate of the ball search (keeps bridges apart)")
     combine_max_angle_deg: float = Field(30.0, description="ours: candidates meeting at a larger angle are not combined")
+    max_turn_deg: float = Field(10.0, description="ours: a found cluster whose direction turns the search by more "
+                                "than this keeps the previous direction (stray blobs beside a line)")
     seed: int = Field(0, description="seed of the line RANSAC")
 
 
