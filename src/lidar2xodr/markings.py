@@ -182,8 +182,9 @@ def _line_fit(pts: np.ndarray, starts: np.ndarray, sizes: np.ndarray,
     """Seeded RANSAC line per cluster (vectorised over clusters), refined on its inliers.
 
     Returns centres, directions, lengths (inliers along the line) and widths (all points across it,
-    so a blob with a thin line of inliers inside is not taken for a marking). The centre is the centre of the inliers' bounding box in the line's own frame (a stray bright
-    point that DBSCAN attached to a dash moves an axis-aligned box by decimetres).
+    so a blob with a thin line of inliers inside is not taken for a marking). The centre is the
+    centre of the inliers' bounding box in the line's own frame (a stray bright point that DBSCAN
+    attached to a dash moves an axis-aligned box by decimetres).
     """
     n_c = len(starts)
     label = np.repeat(np.arange(n_c), sizes)
