@@ -1,29 +1,39 @@
 """OpenDRIVE export of a LaneModel (paper Alg. 3, made continuous by construction).
 
 Reference line (paper): the road centre of LaneModel is split into equal pieces of at most
-`piece_length_m` (n = ceil(L / 100 m), so no short stub is left at the end). Each piece is fitted
-as a paramPoly3 over its own stations plus a look-back and look-ahead of `look_fraction` of the
-piece length (used for the fit only), with the parameter p = station / piece length and the
-samples nearest p = 0 and p = 1 weighted by `endpoint_weight`. The fit frame U/V is rotated by
-the paper's heading (angle of the mean of the piece's reference points, seen from its first point,
-towards X); the cubic fit is rotation-equivariant, so this only conditions the numbers.
+`piece_length_m` (n = ceil(L / 100 m), so no short stub is left at the end), each written as one
+paramPoly3. Each piece's cubic is fitted to its own stations plus a look-back and look-ahead of
+`look_fraction` of the piece length (its cubic extrapolated there; used for the fit only), with
+p = station offset / piece length and the samples nearest p = 0 and p = 1 weighted by
+`endpoint_weight`.
 
 Beyond the paper:
-- Continuity by construction: every piece after the first is a constrained least-squares cubic
-  whose start point is the evaluated end of the written previous piece and whose start tangent is
-  parallel to its end tangent (C(0) fixed, C'(0) = lambda * T, lambda free); the look-ahead makes
-  the end tangent agree with the next piece's data. x, y, hdg of the next piece are computed from
-  the written (repr-exact) numbers, so leaps are ~1e-12 m and kinks ~1e-16 rad. The written hdg is
-  the start tangent (aU = aV = bV = 0).
+- Continuity by construction: instead of independent per-piece fits (1-3 cm gaps) or a chain of
+  constrained fits (we tried: errors propagate and grow without look-ahead), all pieces come from
+  ONE weighted least-squares solve for the position P_k and tangent D_k at every break; piece k is
+  the cubic Hermite curve of (P_k, D_k, P_k+1, D_k+1), so neighbours share end point and tangent.
+  Each piece is then written in the frame of its start tangent (aU = aV = bV = 0), starting at
+  the end of the previous piece as a reader evaluates the written (repr-exact) numbers: leaps are
+  ~1e-13 m, kinks ~1e-16 rad.
+- Heading: the paper rotates each piece by the heading of the mean of its marking centres to fit
+  U and V and writes that heading with the piece. A weighted cubic fit of U(p), V(p) is
+  rotation-equivariant, so that rotation never changes the curve; we write the start tangent as
+  hdg instead, which is what makes the heading continuous across pieces.
 - pRange="normalized" and length = arc length of the fitted curve (32-point Gauss-Legendre); the
   next piece's s = previous s + that length. Coordinates stay in the local world frame of the
   LaneModel (origin at the drive's start); the header's geoReference places it on the earth.
+  Known limit: a 100 m cubic cannot follow a curvature kink (clothoid meets arc) inside a piece;
+  on an R = 800 m S-curve with 150 m clothoids that costs up to 2 cm.
 - Lanes of a one-way carriageway in right-hand traffic: the reference line stays on the road
   centre (paper) and a <laneOffset> moves lane 0 onto the leftmost boundary, so every driving
-  lane is a right lane (-1, -2, ... from left to right). laneOffset and lane widths are C2 cubic
-  B-splines (least squares with a tiny P-spline penalty) written as one cubic record every
-  ~`lane_record_m`; the boundaries' world points are projected onto the written reference line
-  first, so borders follow the boundaries even where the fitted centre deviates by millimetres.
+  lane is a right lane (-1, -2, ... from left to right). laneOffset and lane widths are C1 cubic
+  splines (least squares, tiny P-spline penalty) written as one cubic record every
+  ~`lane_record_m`; C1 rather than C2 so tapers (whose width has a curvature kink) are followed
+  to millimetres. Before fitting, every boundary's world points (reference + t * left normal of
+  the LaneModel) are projected onto the written reference line, so borders follow the boundaries
+  even where the fitted centre deviates; t is divided by cos(superelevation) because OpenDRIVE
+  measures t along the banked surface. Records that vary less than 1 um are flattened and
+  repeated records merged (the ASAM checker flags redundant records).
 - Lane sections follow LaneModel.sections. Lanes are linked (predecessor and successor, both ways)
   when their lateral extents overlap at the section change. A lane without predecessor starts at
   width 0 and one without successor ends at width 0; where its markings start at full width it
@@ -32,16 +42,17 @@ Beyond the paper:
   boundary's solid/broken mark with its width, laneChange none/both, and for broken lines with a
   known dash/gap an explicit <type><line length space/>.
 - Elevation: C2 cubic spline of the reference z with one record per planView piece (paper: cubic
-  per piece, no weighting, no look-ahead; continuity in value and slope is ours). Superelevation:
-  roll of each scan's ground plane about the road (positive = left side up, as OpenDRIVE),
-  running median over scans, smoothing cubic spline with one record per piece; 0 without planes.
+  per piece, no weighting, no look-ahead; continuity in value, slope and curvature is ours).
+  Superelevation: roll of each scan's ground plane about the road (positive = left side up, as
+  OpenDRIVE), running median over scans, smoothing C2 spline with one record per piece; a single
+  zero record without planes.
 - Optional lanes outside the measured lines: a 'shoulder' right of the rightmost line
   (`right_shoulder_m`) and a 'border' left of the leftmost (`left_border_m`); off by default
   because they are not measured.
-- Header: OpenDRIVE 1.`opendrive_minor`, name, vendor, bounding box, geoReference from
+- Header: OpenDRIVE 1.`opendrive_minor`, name, vendor, bounding box, road type, geoReference from
   model.origin.proj (else a tmerc at the origin's lat/lon, else a tmerc at 0,0 with a comment
   saying the frame is local). The date is the first ground plane's time when that is a plausible
-  UNIX time, otherwise omitted, so the same input always gives the same bytes.
+  UNIX time (2000-2100), otherwise omitted, so the same input always gives the same bytes.
 
 Written with scenariogeneration. Patches after writing (lxml), because scenariogeneration cannot
 express them: the header date (it writes now()), north/south/east/west (it writes 0), a vendor,
@@ -141,13 +152,16 @@ class _Plan:
             d2 = self.derivs(k, p, 2)
             f = np.sum(r * d1, axis=1)
             fp = np.sum(d1 * d1, axis=1) + np.sum(r * d2, axis=1)
-            p = p - f / np.where(np.abs(fp) > 1e-9, fp, 1e-9)
+            step = f / np.where(np.abs(fp) > 1e-9, fp, 1e-9)
+            p = p - step
             up = (p > 1.0) & (k < n - 1)
             down = (p < 0.0) & (k > 0)
             p[up] = (p[up] - 1.0) * self.length[k[up]] / self.length[k[up] + 1]
             k[up] += 1
             p[down] = 1.0 + p[down] * self.length[k[down]] / self.length[k[down] - 1]
             k[down] -= 1
+            if np.max(np.abs(step)) < 1e-13 and not (up.any() or down.any()):
+                break
         d1 = self.derivs(k, p, 1)
         normal = np.stack([-d1[:, 1], d1[:, 0]], axis=1) / np.linalg.norm(d1, axis=1)[:, None]
         t = np.sum((pts - self.derivs(k, p, 0)) * normal, axis=1)
@@ -182,8 +196,8 @@ def _fit_hermite(s: np.ndarray, xy: np.ndarray, breaks: np.ndarray, cfg: ExportC
     n = len(breaks) - 1
     look = cfg.look_fraction * cfg.piece_length_m
     origin = xy[0]
-    rows: list[np.ndarray] = []
-    rhs: list[np.ndarray] = []
+    normal = np.zeros((2 * (n + 1), 2 * (n + 1)))
+    rhs = np.zeros((2 * (n + 1), 2))
     for k in range(n):
         a, b = breaks[k], breaks[k + 1]
         span = b - a
@@ -192,14 +206,12 @@ def _fit_hermite(s: np.ndarray, xy: np.ndarray, breaks: np.ndarray, cfg: ExportC
         w = np.ones(len(p))
         w[np.argmin(np.abs(p))] = cfg.endpoint_weight
         w[np.argmin(np.abs(p - 1.0))] = cfg.endpoint_weight
-        basis = _hermite(p) * np.array([1.0, span, 1.0, span]) * np.sqrt(w)[:, None]
-        for dim in (0, 1):
-            block = np.zeros((len(p), 4 * (n + 1)))
-            block[:, [4 * k + dim, 4 * k + 2 + dim, 4 * k + 4 + dim, 4 * k + 6 + dim]] = basis
-            rows.append(block)
-            rhs.append((xy[m, dim] - origin[dim]) * np.sqrt(w))
-    sol = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)[0].reshape(n + 1, 4)
-    return sol[:, :2] + origin, sol[:, 2:]
+        basis = _hermite(p) * np.array([1.0, span, 1.0, span])
+        cols = [2 * k, 2 * k + 1, 2 * k + 2, 2 * k + 3]  # P_k, D_k, P_k+1, D_k+1
+        normal[np.ix_(cols, cols)] += basis.T @ (basis * w[:, None])
+        rhs[cols] += basis.T @ ((xy[m] - origin) * w[:, None])
+    sol = np.linalg.solve(normal, rhs)  # x and y share the normal matrix
+    return sol[0::2] + origin, sol[1::2]
 
 
 def _fit_plan(s: np.ndarray, xy: np.ndarray, breaks: np.ndarray, cfg: ExportConfig) -> _Plan:
@@ -251,28 +263,29 @@ class _Records:
 
 
 def _spline_records(x: np.ndarray, y: np.ndarray, breaks: np.ndarray, smooth: float = _GEOMETRY_SMOOTH,
-                    constraints: tuple[tuple[float, int, float], ...] = (), c1: bool = False) -> _Records:
+                    constraints: tuple[tuple[float, float], ...] = (), c1: bool = False) -> _Records:
     """Least-squares cubic B-spline on `breaks` with a P-spline penalty and equality constraints.
 
-    C2 at the breaks, or only C1 with `c1` (double interior knots). Each constraint is
-    (x, derivative order, value). Returns one record per break interval.
+    C2 at the breaks, or only C1 with `c1` (double interior knots). Each constraint is (x, value).
+    Returns one record per break interval.
     """
     inner = np.repeat(breaks[1:-1], 2 if c1 else 1)
     knots = np.r_[[breaks[0]] * 4, inner, [breaks[-1]] * 4]
     nb = len(knots) - 4
-    basis = BSpline(knots, np.eye(nb), 3, extrapolate=True)
-    design = basis(np.clip(x, breaks[0], breaks[-1]))
-    gram = design.T @ design
+    design = BSpline.design_matrix(np.clip(x, breaks[0], breaks[-1]), knots, 3)
     diff2 = np.diff(np.eye(nb), 2, axis=0) if nb > 2 else np.zeros((0, nb))
     mu = smooth * max(len(x), 1) / nb
-    lhs = gram + mu * diff2.T @ diff2 + 1e-12 * np.eye(nb)
+    lhs = (design.T @ design).toarray() + mu * diff2.T @ diff2 + 1e-12 * np.eye(nb)
     rhs = design.T @ y
     if constraints:
-        crow = np.array([basis.derivative(o)(xc) if o else basis(xc) for xc, o, _ in constraints])
-        cval = np.array([val for _, _, val in constraints])
+        cx = np.clip([c[0] for c in constraints], breaks[0], breaks[-1])
+        crow = BSpline.design_matrix(cx, knots, 3).toarray()
+        cval = np.array([c[1] for c in constraints])
         kkt = np.block([[lhs, crow.T], [crow, np.zeros((len(cval), len(cval)))]])
-        sol = np.linalg.lstsq(kkt, np.concatenate([rhs, cval]), rcond=None)[0]
-        coef = sol[:nb]
+        try:
+            coef = np.linalg.solve(kkt, np.concatenate([rhs, cval]))[:nb]
+        except np.linalg.LinAlgError:  # contradictory constraints: the nearest solution
+            coef = np.linalg.lstsq(kkt, np.concatenate([rhs, cval]), rcond=None)[0][:nb]
     else:
         coef = np.linalg.solve(lhs, rhs)
     pp = PPoly.from_spline(BSpline(knots, coef, 3))
@@ -399,15 +412,15 @@ def _lane_fit(grid_s: np.ndarray, t_data: dict[int, np.ndarray], sections: list[
         widths = []
         for i in range(len(ids) - 1):
             w = arr[i] - arr[i + 1]
-            cons: list[tuple[float, int, float]] = []
+            cons: list[tuple[float, float]] = []
             if j > 0 and i not in preds[j]:
                 w = _taper(w, s - s0, taper)
-                cons.append((s0, 0, 0.0))
+                cons.append((s0, 0.0))
             elif j > 0:
-                cons.append((s0, 0, float(fits[j - 1].widths[preds[j][i]](np.array([s0]))[0])))
+                cons.append((s0, float(fits[j - 1].widths[preds[j][i]](np.array([s0]))[0])))
             if j < len(sections) - 1 and i not in succs[j]:
                 w = _taper(w, s1 - s, taper)
-                cons.append((s1, 0, 0.0))
+                cons.append((s1, 0.0))
             if i == 0 and (j > 0 and i not in preds[j] or j < len(sections) - 1 and i not in succs[j]):
                 lead = arr[1] + w
             widths.append(_spline_records(s, w, breaks, constraints=tuple(cons), c1=True))
@@ -619,6 +632,8 @@ def _measure(data: bytes) -> tuple[float, float, float]:
     geoms = root.findall("road/planView/geometry")
     leap = kink = lerr = 0.0
     prev_end: tuple[float, float, float] | None = None
+    xs, ws = np.polynomial.legendre.leggauss(64)
+    pgl = 0.5 * (xs + 1)
     for g in geoms:
         pp = g.find("paramPoly3")
         u = np.array([float(pp.get(k)) for k in ("aU", "bU", "cU", "dU")])
@@ -630,8 +645,6 @@ def _measure(data: bytes) -> tuple[float, float, float]:
                                         y + u[0] * math.sin(h) + v[0] * math.cos(h) - prev_end[1]))
             kink = max(kink, abs(_wrap(start_h - prev_end[2])))
         prev_end = _local_end(u, v, x, y, h)
-        xs, ws = np.polynomial.legendre.leggauss(64)
-        pgl = 0.5 * (xs + 1)
         speed = np.hypot(u[1] + 2 * u[2] * pgl + 3 * u[3] * pgl**2, v[1] + 2 * v[2] * pgl + 3 * v[3] * pgl**2)
         lerr = max(lerr, abs(0.5 * float(speed @ ws) - length))
     return leap, kink, lerr
