@@ -365,3 +365,65 @@ def test_a9_drive(tmp_path: Path, shared_data: Path) -> None:
     assert summary.counts["ego_off_map_samples"] == 0
     assert summary.duration_s == pytest.approx(10.2)
     assert _asam_errors(out) == 0
+
+
+def test_border_hugging_vehicle_makes_no_lane_change(tmp_path: Path, straight_map: Path) -> None:
+    """A car driving on the lane line with 0.2 m lateral jitter flickers between lanes: hysteresis."""
+    truth = _truth()
+    rng = np.random.default_rng(5)
+    truth = {"ego": truth["ego"], "4": {"t": T, "x": 150 + 25 * T, "y": -LANE_W + rng.normal(0, 0.2, len(T)),
+                                       "cls": "car", "dims": (4.5, 1.8, 1.5)}}
+    drive = _write_drive(tmp_path / "drive", truth)
+    _, summary = _export(drive, straight_map, tmp_path / "x.xosc")
+    assert summary.manoeuvres == []
+
+
+def test_frames_json_categories_and_osc_1_3(tmp_path: Path, straight_map: Path) -> None:
+    t = np.round(np.arange(0, 4, 0.1), 3)
+    kinds = {"p1": ("person", -8.0, 1.4), "m1": ("motorcycle", -1.75, 30.0), "b1": ("cyclist", -5.25, 6.0),
+             "x1": ("ufo", -5.25, 20.0)}
+    frames = [{"time": float(tk), "objects": [
+        {"track_id": k, "type": c, "x": 60 + v * tk, "y": y, "z": 0.0, "l": 0, "w": 0, "h": 0}
+        for k, (c, y, v) in kinds.items()]} for tk in t]
+    path = tmp_path / "frames.json"
+    path.write_text(json.dumps({"frame": "world", "frames": frames}))
+    ego = Trajectory(times=t, poses=np.tile(np.eye(4), (len(t), 1, 1)))
+    ego.poses[:, 0, 3], ego.poses[:, 1, 3] = 25 * t, EGO_Y
+    cfg = ScenarioConfig(osc_minor_version=3)
+    ts = load_tracks(path, ego, cfg=cfg)
+    assert {tr.id: tr.category for tr in ts.tracks} == {"p1": "pedestrian", "m1": "motorbike", "b1": "bicycle",
+                                                         "x1": "car"}
+    assert ts.counts["zero_size_tracks"] == 4 and ts.counts["unknown_class_samples"] == len(t)
+    out = tmp_path / "cats.xosc"
+    export_scenario(ego, ts, straight_map, out, cfg)
+    root = etree.parse(str(out)).getroot()
+    assert root.find("FileHeader").get("revMinor") == "3"
+    assert root.find(".//ScenarioObject[@name='pedestrian_p1']/Pedestrian") is not None
+    assert root.find(".//ScenarioObject[@name='motorbike_m1']/Vehicle").get("vehicleCategory") == "motorbike"
+    assert _asam_errors(out) == 0
+
+
+def test_ego_from_trajectory_csv_and_clock_mismatch(tmp_path: Path, straight_map: Path) -> None:
+    """Vehicle-frame detections placed with the extraction's quaternion trajectory (CLI --ego)."""
+    t = np.round(np.arange(100.0, 104.0, 0.1), 3)
+    yaw = 0.05
+    traj = tmp_path / "markings.trajectory.csv"
+    qz, qw = math.sin(yaw / 2), math.cos(yaw / 2)
+    traj.write_text("time,x,y,z,qx,qy,qz,qw\n" + "".join(
+        f"{tk},{25 * (tk - 100) * math.cos(yaw)},{EGO_Y + 25 * (tk - 100) * math.sin(yaw)},0,0,0,{qz},{qw}\n"
+        for tk in t))
+    dets = tmp_path / "dets.csv"
+    dets.write_text("time,id,class,x,y,frame\n" + "".join(f"{tk},7,car,20,0,vehicle\n" for tk in t))
+    out = tmp_path / "ego.xosc"
+    res = CliRunner().invoke(app, ["scenario", str(dets), "--map", str(straight_map), "-o", str(out),
+                                   "--ego", str(traj)])
+    assert res.exit_code == 0, res.output
+    t_rep, xyz = _replay(out)["car_7"]
+    # 20 m ahead of the ego along its heading
+    assert xyz[0, 0] == pytest.approx(20 * math.cos(yaw), abs=0.01)
+    assert xyz[0, 1] == pytest.approx(EGO_Y + 20 * math.sin(yaw), abs=0.01)
+    late = tmp_path / "late.csv"
+    late.write_text("time,id,x,y,frame\n" + "".join(f"{tk + 1000},7,20,0,vehicle\n" for tk in t))
+    res = CliRunner().invoke(app, ["scenario", str(late), "--map", str(straight_map), "-o", str(out),
+                                   "--ego", str(traj)])
+    assert res.exit_code == 2 and "share a clock" in res.output

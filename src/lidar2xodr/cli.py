@@ -159,8 +159,8 @@ def scenario(
     drive: Path = typer.Argument(..., help="Drive folder or track file: objects.csv, detections, aiMotive, A9 CSV."),
     map_path: Path = typer.Option(..., "--map", help="The OpenDRIVE map to place the traffic on."),
     out_path: Path = typer.Option(..., "--out", "-o", help="The OpenSCENARIO file to write (.xosc)."),
-    ego_path: Path | None = typer.Option(None, "--ego", help="Ego poses CSV (time,x,y,z,roll,pitch,yaw) "
-                                          "when the drive has none, e.g. from LiDAR odometry."),
+    ego_path: Path | None = typer.Option(None, "--ego", help="Ego poses when the drive has none: poses.csv "
+                                          "layout or the extraction's *.trajectory.csv (LiDAR odometry)."),
     json_out: Path | None = typer.Option(None, "--json", help="Write the summary as JSON."),
     config: Path | None = ConfigOpt,
 ) -> None:

@@ -144,6 +144,7 @@ class ScenarioConfig(_Section):
     heading_min_speed_mps: float = Field(1.0, description="ours: slower: box yaw; faster: motion direction")
     spawn_tolerance_s: float = Field(0.2, description="ours: tracks starting this early go into Init")
     lane_change_dwell_s: float = Field(1.0, description="ours: a lane must be held this long to count (hysteresis)")
+    lane_change_margin_m: float = Field(0.5, description="ours: the centre must get this deep into the new lane")
     cut_in_range_m: float = Field(50.0, description="task: a cut-in/out happens within this distance ahead of the ego")
     ego_dims_m: tuple[float, float, float] = Field((4.9, 1.9, 1.5), description="ours: ego length, width, height")
     ego_center_x_m: float = Field(0.0, description="ours: box centre ahead of the ego pose origin")

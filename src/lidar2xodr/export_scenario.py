@@ -22,8 +22,9 @@
   the end of the first makes it follow its path. An entity whose track ends before the recording is
   removed at its last sample (DeleteEntityAction): it left the sensor's view, and a frozen ghost would
   block traffic. The StopTrigger ends the scenario when the recording ends.
-- Manoeuvres relative to the map's lanes (lane id of the road the vehicle is on, with a hysteresis of
-  `lane_change_dwell_s`; changes across roads or off the map are not reported): `ego_lane_change`;
+- Manoeuvres relative to the map's lanes (lane id of the road the vehicle is on, with a hysteresis:
+  `lane_change_margin_m` deep into the new lane, held for `lane_change_dwell_s`; the time reported is
+  the border crossing; changes across roads or off the map are not reported): `ego_lane_change`;
   `cut_in` = another vehicle enters the ego's lane while its centre is 0..`cut_in_range_m` ahead of the
   ego's (along the ego's heading); `cut_out` = it leaves the ego's lane from there; `lane_change` =
   any other lane change. They are returned in the summary and written as XML comments in the
@@ -112,6 +113,7 @@ class Located:
     lane_id: np.ndarray  # int
     z: np.ndarray
     hdg: np.ndarray
+    depth: np.ndarray  # distance of the position from the nearer border of its lane
 
 
 class MapIndex:
@@ -149,7 +151,7 @@ class MapIndex:
     def locate(self, xy: np.ndarray) -> Located:
         n = len(xy)
         out = Located(np.zeros(n, bool), np.full(n, "", dtype=object), np.zeros(n, np.int64),
-                      np.full(n, np.nan), np.full(n, np.nan))
+                      np.full(n, np.nan), np.full(n, np.nan), np.zeros(n))
         if n == 0:
             return out
         k = min(8, len(self.xy))
@@ -179,6 +181,7 @@ class MapIndex:
             out.lane_id[m] = lanes[rows, j]
             out.z[m] = z0 + w * (z1 - z0) + ds_pick[m] * dzds[rows]
             out.hdg[m] = self.hdg[pick[m]]
+            out.depth[m] = np.maximum(np.minimum(tt - b0, b1 - tt), 0.0)
         return out
 
 
@@ -247,37 +250,48 @@ def _safe_name(category: str, tid: str, used: set[str]) -> str:
 # manoeuvres
 
 
-def _runs(times: np.ndarray, keys: list[tuple[str, int] | None], dwell: float) -> list[tuple[int, int, Any]]:
-    """Runs (first, last sample, key) of constant lane; runs shorter than `dwell` join the run before."""
-    keys = list(keys)
+def _runs(times: np.ndarray, codes: np.ndarray, dwell: float) -> list[tuple[int, int, int]]:
+    """Runs (first, last sample, lane code) of constant lane; the shortest run under `dwell` joins the run
+    before it (the first run joins the next), repeated until every run lasts `dwell` or only one is left."""
+    codes = codes.copy()
     while True:
-        runs: list[tuple[int, int, Any]] = []
-        for i, k in enumerate(keys):
-            if runs and runs[-1][2] == k:
-                runs[-1] = (runs[-1][0], i, k)
-            else:
-                runs.append((i, i, k))
-        short = [r for r in runs if times[r[1]] - times[r[0]] < dwell]
-        if len(runs) < 2 or not short:
-            return runs
-        i0, i1, _ = min(short, key=lambda r: (times[r[1]] - times[r[0]], r[0]))
-        ri = next(q for q, r in enumerate(runs) if r[0] == i0)
-        fill = runs[ri - 1][2] if ri > 0 else runs[ri + 1][2]
-        keys[i0:i1 + 1] = [fill] * (i1 - i0 + 1)
+        cut = np.flatnonzero(np.diff(codes) != 0) + 1
+        first, last = np.r_[0, cut], np.r_[cut - 1, len(codes) - 1]
+        dur = times[last] - times[first]
+        if len(first) < 2 or dur.min() >= dwell:
+            return [(int(a), int(b), int(codes[a])) for a, b in zip(first, last, strict=True)]
+        r = int(np.argmin(dur))
+        codes[first[r]:last[r] + 1] = codes[first[r - 1]] if r > 0 else codes[first[r + 1]]
 
 
-def _lane_changes(e: _Entity, dwell: float) -> list[tuple[float, int, str, int, int, str]]:
-    """(time, sample index, road, from lane, to lane, direction) of each lane change of one entity."""
+def _lane_changes(e: _Entity, dwell: float, margin: float) -> list[tuple[float, int, str, int, int, str]]:
+    """(time, sample index, road, from lane, to lane, direction) of each lane change of one entity.
+
+    Hysteresis in space and time: a sample counts for a new lane of the same road only once its centre
+    is `margin` deep inside it, and a lane must then be held for `dwell`. The reported time is the last
+    crossing of the border before that (midway between the two samples around it).
+    """
     w = e.where
-    keys = [(str(w.road_id[i]), int(w.lane_id[i])) if w.on_map[i] else None for i in range(len(e.times))]
-    runs = _runs(e.times, keys, dwell)
+    raw = [(str(w.road_id[i]), int(w.lane_id[i])) if w.on_map[i] else None for i in range(len(e.times))]
+    keys = list(raw)
+    for i in range(1, len(keys)):
+        prev = keys[i - 1]
+        if keys[i] is not None and prev is not None and keys[i] != prev and keys[i][0] == prev[0] \
+                and w.depth[i] < margin:
+            keys[i] = prev
+    table = {k: q for q, k in enumerate(dict.fromkeys(keys))}
+    lookup = list(table)
+    runs = _runs(e.times, np.array([table[k] for k in keys]), dwell)
     out = []
     for a, b in zip(runs[:-1], runs[1:], strict=True):
-        ka, kb = a[2], b[2]
+        ka, kb = lookup[a[2]], lookup[b[2]]
         if ka is None or kb is None or ka[0] != kb[0] or ka[1] == kb[1]:
             continue
         i = b[0]
-        tc = 0.5 * (e.times[a[1]] + e.times[i])
+        c = i
+        while c > a[0] and raw[c - 1] == kb:
+            c -= 1
+        tc = 0.5 * (e.times[max(c - 1, 0)] + e.times[c])
         left = kb[1] > ka[1]
         if math.cos(e.yaw[i] - w.hdg[i]) < 0:
             left = not left
@@ -288,13 +302,13 @@ def _lane_changes(e: _Entity, dwell: float) -> list[tuple[float, int, str, int, 
 def detect_manoeuvres(ego: _Entity, others: list[_Entity], cfg: ScenarioConfig, t0: float) -> list[Manoeuvre]:
     """Ego lane changes, cut-ins, cut-outs and other lane changes (see the module doc)."""
     found: list[Manoeuvre] = []
-    for tc, _, road, a, b, d in _lane_changes(ego, cfg.lane_change_dwell_s):
+    for tc, _, road, a, b, d in _lane_changes(ego, cfg.lane_change_dwell_s, cfg.lane_change_margin_m):
         found.append(Manoeuvre("ego_lane_change", EGO, round(float(tc - t0), 3), road, a, b, d))
     ew = ego.where
     for e in others:
         if e.category == "pedestrian":
             continue
-        for tc, _, road, a, b, d in _lane_changes(e, cfg.lane_change_dwell_s):
+        for tc, _, road, a, b, d in _lane_changes(e, cfg.lane_change_dwell_s, cfg.lane_change_margin_m):
             j = int(np.clip(np.searchsorted(ego.times, tc), 0, len(ego.times) - 1))
             ego_lane = (str(ew.road_id[j]), int(ew.lane_id[j])) if ew.on_map[j] else None
             p_obj = np.array([np.interp(tc, e.times, e.xyz[:, k]) for k in range(2)])

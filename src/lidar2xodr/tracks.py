@@ -381,7 +381,8 @@ def _read_aimotive(folder: Path) -> _Detections:
 
 
 def read_poses_csv(path: Path) -> Trajectory:
-    """The drive's `poses.csv` (time,x,y,z,roll,pitch,yaw,...; angles in rad, ISO 8855 Z-Y-X order)."""
+    """Ego poses T_world_vehicle from CSV: the drive's `poses.csv` (time,x,y,z,roll,pitch,yaw,...; rad,
+    ISO 8855 Z-Y-X order) or the extraction's `*.trajectory.csv` (time,x,y,z,qx,qy,qz,qw)."""
     try:
         with path.open(encoding="utf-8", newline="") as fh:
             rows = list(csv.DictReader(fh))
@@ -389,15 +390,23 @@ def read_poses_csv(path: Path) -> Trajectory:
         raise InputError(path, f"cannot read poses: {exc}") from None
     if not rows:
         raise InputError(path, "no poses")
-    need = ("time", "x", "y", "z", "roll", "pitch", "yaw")
+    quat = all(c in rows[0] for c in ("qx", "qy", "qz", "qw"))
+    need = ("time", "x", "y", "z", *(("qx", "qy", "qz", "qw") if quat else ("roll", "pitch", "yaw")))
     missing = [c for c in need if c not in rows[0]]
     if missing:
         raise InputError(path, f"missing column(s) {', '.join(missing)}")
     v = {c: _float([r[c] for r in rows], path, c, True) for c in need}
     order = np.argsort(v["time"], kind="stable")
     keep = order[np.r_[True, np.diff(v["time"][order]) > 0]]
+    if quat:
+        q = np.stack([v["qx"], v["qy"], v["qz"], v["qw"]], 1)[keep]
+        if np.any(np.linalg.norm(q, axis=1) < 1e-9):
+            raise InputError(path, "a quaternion has zero length")
+        rot = Rotation.from_quat(q)
+    else:
+        rot = Rotation.from_euler("ZYX", np.stack([v["yaw"], v["pitch"], v["roll"]], 1)[keep])
     poses = np.tile(np.eye(4), (len(keep), 1, 1))
-    poses[:, :3, :3] = Rotation.from_euler("ZYX", np.stack([v["yaw"], v["pitch"], v["roll"]], 1)[keep]).as_matrix()
+    poses[:, :3, :3] = rot.as_matrix()
     poses[:, :3, 3] = np.stack([v["x"], v["y"], v["z"]], 1)[keep]
     return Trajectory(times=v["time"][keep], poses=poses)
 
@@ -507,6 +516,10 @@ def _to_world(det: _Detections, ego: Trajectory | None, counts: Counter[str]) ->
                          "(give poses.csv in the drive or --ego)")
     inside = ~det.vehicle | ((det.time >= ego.times.min() - 1e-6) & (det.time <= ego.times.max() + 1e-6))
     counts["outside_ego_time"] += int((~inside).sum())
+    if not (inside & det.vehicle).any():
+        raise InputError(det.source, f"no vehicle-frame detection lies in the ego trajectory's time span "
+                         f"[{ego.times.min():.3f}, {ego.times.max():.3f}] s (detections: "
+                         f"[{det.time.min():.3f}, {det.time.max():.3f}] s): do they share a clock?")
     keep = np.flatnonzero(inside)
     det = _Detections(det.source, det.time[keep], det.ids[keep], det.cls[keep], det.xyz[keep].copy(),
                       det.yaw[keep].copy(), det.dims[keep], det.vel[keep].copy(), det.vehicle[keep])
