@@ -268,8 +268,9 @@ def _lane_changes(e: _Entity, dwell: float, margin: float) -> list[tuple[float, 
     """(time, sample index, road, from lane, to lane, direction) of each lane change of one entity.
 
     Hysteresis in space and time: a sample counts for a new lane of the same road only once its centre
-    is `margin` deep inside it, and a lane must then be held for `dwell`. The reported time is the last
-    crossing of the border before that (midway between the two samples around it).
+    is `margin` deep inside it, and a lane must then be held for `dwell`; both lanes must have been
+    entered that deep (a track that starts on a lane line has no known lane to leave). The reported time
+    is the last crossing of the border before that (midway between the two samples around it).
     """
     w = e.where
     raw = [(str(w.road_id[i]), int(w.lane_id[i])) if w.on_map[i] else None for i in range(len(e.times))]
@@ -282,10 +283,16 @@ def _lane_changes(e: _Entity, dwell: float, margin: float) -> list[tuple[float, 
     table = {k: q for q, k in enumerate(dict.fromkeys(keys))}
     lookup = list(table)
     runs = _runs(e.times, np.array([table[k] for k in keys]), dwell)
+    codes = np.array([table.get(k, -1) for k in raw])
+
+    def established(r: tuple[int, int, int]) -> bool:
+        m = codes[r[0]:r[1] + 1] == r[2]
+        return bool(m.any() and w.depth[r[0]:r[1] + 1][m].max() >= margin)
+
     out = []
     for a, b in zip(runs[:-1], runs[1:], strict=True):
         ka, kb = lookup[a[2]], lookup[b[2]]
-        if ka is None or kb is None or ka[0] != kb[0] or ka[1] == kb[1]:
+        if ka is None or kb is None or ka[0] != kb[0] or ka[1] == kb[1] or not (established(a) and established(b)):
             continue
         i = b[0]
         c = i
