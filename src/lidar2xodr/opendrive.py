@@ -13,8 +13,11 @@ Every function of the station s accepts scalars or arrays and returns arrays. Co
   the lateral `shape` profile are read but not applied.
 - A lane <border> polynomial gives the outer border's distance from the lane reference line
   (centre lane after laneOffset), positive outwards, as for widths.
-- Road marks without an explicit <type><line> pattern get one from their type: see
-  BROKEN_DASH_M, BROKEN_GAP_M, DOUBLE_LINE_GAP_M, MARK_WIDTH_M. A continuous line has space 0.
+- A section's last sample (its closed end) takes every profile's limit from below, so records
+  that start exactly at the next section belong to that section only.
+- Road marks without an explicit <type><line> pattern get one from their type (default_lines):
+  see BROKEN_DASH_M, BROKEN_GAP_M, DOUBLE_LINE_GAP_M, MARK_WIDTH_M. A continuous line has space 0.
+- Where OpenDRIVE 1.8 allows several lane predecessors/successors, the first one is kept.
 """
 
 from __future__ import annotations
@@ -686,12 +689,12 @@ class _Parser:
             level=el.get("level", "false").lower() in ("true", "1"),
             predecessor=pred,
             successor=succ,
-            road_marks=[self.road_mark(m, w) for m in el.iterfind("roadMark")],
+            road_marks=[self.road_mark(m, lid, w) for m in el.iterfind("roadMark")],
             widths=widths,
             borders=borders,
         )
 
-    def road_mark(self, el: etree._Element, where: str) -> RoadMark:
+    def road_mark(self, el: etree._Element, lane_id: int, where: str) -> RoadMark:
         kind = el.get("type", "none")
         weight = el.get("weight", "standard")
         width = self.num(el, "width", where, MARK_WIDTH_M.get(weight, MARK_WIDTH_M["standard"]))
@@ -709,7 +712,7 @@ class _Parser:
                 for ln in explicit.iterfind("line")
             ]
         else:
-            lines = default_lines(kind, width)
+            lines = default_lines(kind, width, lane_id)
         return RoadMark(
             s_offset=self.num(el, "sOffset", where, 0.0),
             type=kind,
@@ -743,11 +746,13 @@ class _Parser:
         return Junction(jid, el.get("name", ""), conns)
 
 
-def default_lines(kind: str, width: float) -> list[MarkLine]:
-    """Painted lines of a roadMark type without explicit pattern; words read left to right (+t first).
+def default_lines(kind: str, width: float, lane_id: int = 0) -> list[MarkLine]:
+    """Painted lines of a roadMark type without explicit pattern, t_offset relative to the border.
 
-    Double marks are centred on the border with DOUBLE_LINE_GAP_M between the lines. Physical
-    or unpainted types (curb, grass, edge, none) have no lines.
+    Words of a double type read from the inside to the outside of the lane, on the centre lane
+    from left to right (OpenDRIVE 1.4 roadMark table), so 'solid broken' on lane 0 puts the solid
+    line at +t. Double marks are centred on the border with DOUBLE_LINE_GAP_M between the lines.
+    Physical or unpainted types (curb, grass, edge, none, custom) have no lines.
     """
     words = kind.split()
     one = {"solid": (0.0, 0.0), "broken": (BROKEN_DASH_M, BROKEN_GAP_M), "botts": BOTTS_DOT_M}
@@ -759,5 +764,5 @@ def default_lines(kind: str, width: float) -> list[MarkLine]:
         offsets = [0.0]
     else:
         half = 0.5 * (DOUBLE_LINE_GAP_M + width)
-        offsets = [half, -half]
+        offsets = [-half, half] if lane_id > 0 else [half, -half]
     return [MarkLine(one[w][0], one[w][1], off, 0.0, width) for w, off in zip(words, offsets, strict=True)]
