@@ -427,3 +427,35 @@ def test_ego_from_trajectory_csv_and_clock_mismatch(tmp_path: Path, straight_map
     res = CliRunner().invoke(app, ["scenario", str(late), "--map", str(straight_map), "-o", str(out),
                                    "--ego", str(traj)])
     assert res.exit_code == 2 and "share a clock" in res.output
+
+
+@pytest.mark.parametrize("name", ["asam/Ex_Line-Spiral-Arc_elevation_and_superelevation.xodr",
+                                  "esmini/straight_500_superelevation_elevation_curve.xodr"])
+def test_map_index_on_curved_superelevated_roads(shared_data: Path, name: str) -> None:
+    """Lane and surface height of lane centres computed by the OpenDRIVE reader are found again."""
+    from lidar2xodr.export_scenario import MapIndex
+    from lidar2xodr.opendrive import OpenDriveMap
+
+    odr = OpenDriveMap.load(shared_data / "maps" / name)
+    index = MapIndex(odr, 0.5, 0.5)
+    rng = np.random.default_rng(2)
+    checked = 0
+    for road in odr.roads.values():
+        s = np.sort(rng.uniform(0.5, road.length - 0.5, 60))
+        sec = road.section_index(s)
+        for lid in {i for ls in road.lane_sections for i in ls.lanes if i != 0}:
+            inner = road.border_t(s, lid - 1 if lid > 0 else lid + 1) if abs(lid) > 1 else road.border_t(s, 0)
+            outer = road.border_t(s, lid)
+            ok = np.isfinite(inner) & np.isfinite(outer) & (np.abs(outer - inner) > 1.0)
+            ok &= np.array([lid in road.lane_sections[k].lanes for k in sec])
+            if not ok.any():
+                continue
+            p = road.to_world(s[ok], 0.5 * (inner[ok] + outer[ok]))
+            got = index.locate(p[:, :2])
+            assert got.on_map.all()
+            same_road = got.road_id == road.id
+            assert same_road.mean() > 0.9
+            assert (got.lane_id[same_road] == lid).all(), (road.id, lid)
+            assert np.abs(got.z[same_road] - p[same_road, 2]).max() < 0.03
+            checked += int(same_road.sum())
+    assert checked > 100

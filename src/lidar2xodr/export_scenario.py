@@ -117,7 +117,12 @@ class Located:
 
 
 class MapIndex:
-    """Nearest-sample lookup on a sampled OpenDRIVE map (cKDTree over the reference-line samples)."""
+    """Nearest-sample lookup on a sampled OpenDRIVE map (cKDTree over the reference-line samples).
+
+    Lateral positions are horizontal offsets from the reference line, compared with the horizontal
+    offsets of the lane borders (superelevation shortens t by cos(roll)); z is interpolated linearly
+    between the two borders of the lane and carried along the road with the reference line's slope.
+    """
 
     def __init__(self, odr: OpenDriveMap, step: float, margin: float) -> None:
         self.step, self.margin = step, margin
@@ -128,7 +133,8 @@ class MapIndex:
         xy, hdg, sec, row, tmin, tmax = [], [], [], [], [], []
         for k, sc in enumerate(secs):
             ids = sorted(sc.lane_ids)
-            bt = np.stack([sc.border_t[i] for i in ids], axis=1)
+            normal = np.stack([-np.sin(sc.hdg), np.cos(sc.hdg)], axis=1)
+            bt = np.stack([np.sum((sc.border_xyz[i][:, :2] - sc.xyz[:, :2]) * normal, axis=1) for i in ids], axis=1)
             order = np.argsort(bt, axis=1, kind="stable")
             bt = np.take_along_axis(bt, order, axis=1)
             bz = np.take_along_axis(np.stack([sc.border_xyz[i][:, 2] for i in ids], axis=1), order, axis=1)
