@@ -110,7 +110,7 @@ class ExportConfig(_Section):
                                     "line; 0 = none (not measured, so off by default)")
     left_border_m: float = Field(0.0, description="ours: width of a 'border' lane left of the leftmost line; 0 = none")
     superelevation_median_scans: int = Field(9, description="ours: running median over the per-scan roll angles")
-    superelevation_smoothing: float = Field(1.0, description="ours: P-spline penalty of the superelevation fit")
+    superelevation_smoothing: float = Field(0.01, description="ours: P-spline penalty of the superelevation fit")
     plane_max_offset_m: float = Field(15.0, description="ours: ground planes farther from the reference are ignored")
 
 

@@ -508,7 +508,7 @@ def _superelevation(planes: GroundPlanes | None, grid_xy: np.ndarray, grid_odr: 
     s_pl = grid_odr[i][order]
     roll = median_filter(roll[order], size=max(1, cfg.superelevation_median_scans), mode="nearest")
     target = np.interp(grid_odr, s_pl, roll)
-    return _spline_records(grid_odr, target, breaks, smooth=cfg.superelevation_smoothing)
+    return _spline_records(grid_odr, target, breaks, smooth=cfg.superelevation_smoothing, c1=True)
 
 
 # --------------------------------------------------------------------------------------------
