@@ -293,6 +293,62 @@ def test_elevation_and_superelevation(written) -> None:
     roll = road.superelevation(s)
     assert np.abs(roll - _roll(s)).max() <= 0.004, "left side up is positive, noise and outliers smoothed"
     assert np.corrcoef(roll, _roll(s))[0, 1] > 0.99
+    starts = road.superelevation_profile.starts[1:]
+    assert len(starts) > 10
+    jump = road.superelevation_profile(starts) - road.superelevation_profile(starts - 1e-7)
+    assert np.abs(jump).max() < 1e-6
+
+
+def _demo_lane_model(demo: OpenDriveMap) -> tuple[LaneModel, GroundPlanes]:
+    """What a perfect lanes stage would report for the project's demo road: centre of the three
+    regular lanes as reference, horizontal offsets of the driving-lane borders, ground planes."""
+    road = next(iter(demo.roads.values()))
+    s = np.linspace(0.0, road.length, int(road.length) + 1)
+    ref = road.to_world(s, -1.5 * 3.75)
+    _, _, h = road.reference(s)
+    left = np.stack([-np.sin(h), np.cos(h)], axis=1)
+    added = road.lane_sections[1]
+    ts = []
+    for lid in (0, -1, -2, -3, -4):
+        t = road.border_t(s, lid)
+        th = np.sum((road.to_world(s, np.nan_to_num(t))[:, :2] - ref[:, :2]) * left, axis=1)
+        if lid == -4:
+            t = np.where((s >= added.s) & (s < added.s_end), t, np.nan)
+        ts.append(np.where(np.isfinite(t), th, np.nan))
+    marks = [("solid", 0.3), ("broken", 0.15), ("broken", 0.15), ("solid", 0.3), ("solid", 0.3)]
+    bounds = [Boundary(i, t, kind, w, 6.0 if kind == "broken" else None, 12.0 if kind == "broken" else None)
+              for i, (t, (kind, w)) in enumerate(zip(ts, marks, strict=True))]
+    sections = [LaneSection(ls.s, ls.s_end, [0, 1, 2, 3] + ([4] if k == 1 else []))
+                for k, ls in enumerate(road.lane_sections)]
+    idx = np.arange(0, len(s), 3)
+    roll = road.superelevation(s[idx])
+    planes = GroundPlanes(times=1.7e9 + s[idx] / 25.0, normals_world=np.column_stack(
+        [-np.sin(roll)[:, None] * left[idx], np.cos(roll)]), points_world=ref[idx])
+    return LaneModel(s=s, reference=ref, boundaries=bounds, sections=sections,
+                     origin=GeoOrigin(proj=demo.geo_reference)), planes
+
+
+def test_demo_road_round_trip(tmp_path: Path) -> None:
+    """Demo motorway (clothoids, crest, banking, added lane) -> LaneModel -> export -> the paper's metric."""
+    from lidar2xodr.config import EvaluationConfig
+    from lidar2xodr.demo_road import write_demo_road
+    from lidar2xodr.evaluation import compare_maps
+
+    demo_path = write_demo_road(tmp_path / "demo.xodr")
+    demo = OpenDriveMap.load(demo_path)
+    model, planes = _demo_lane_model(demo)
+    out = tmp_path / "rt.xodr"
+    export_opendrive(model, planes, ExportConfig(), out)
+    metrics = compare_maps(out, demo_path, EvaluationConfig())
+    assert metrics["boundaries"]["rmse_m"] < 0.005 and metrics["boundaries"]["max_m"] < 0.02
+    assert metrics["lane_count_agreement"] > 0.99 and metrics["coverage"] > 0.99
+    gen_road, demo_road = next(iter(OpenDriveMap.load(out).roads.values())), next(iter(demo.roads.values()))
+    s = np.linspace(5.0, demo_road.length - 5.0, 2000)
+    assert np.abs(gen_road.superelevation(s) - demo_road.superelevation(s)).max() < 0.002
+    gen_edge = np.vstack([sec.border_xyz[-3] for sec in OpenDriveMap.load(out).sample(0.5)])[10:-10]
+    demo_edge = np.vstack([sec.border_xyz[-3] for sec in demo.sample(0.05)])
+    _, i = cKDTree(demo_edge[:, :2]).query(gen_edge[:, :2])
+    assert np.abs(gen_edge[:, 2] - demo_edge[i, 2]).max() < 0.02, "banked edge line at the right height"
 
 
 def test_same_input_same_bytes(tmp_path: Path) -> None:

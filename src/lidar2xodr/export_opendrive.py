@@ -44,8 +44,9 @@ Beyond the paper:
 - Elevation: C2 cubic spline of the reference z with one record per planView piece (paper: cubic
   per piece, no weighting, no look-ahead; continuity in value, slope and curvature is ours).
   Superelevation: roll of each scan's ground plane about the road (positive = left side up, as
-  OpenDRIVE), running median over scans, smoothing C2 spline with one record per piece; a single
-  zero record without planes.
+  OpenDRIVE), running median over scans, lightly smoothed C1 spline with one record per piece (C1
+  so the linear roll ramps of road design are followed to ~1 mrad); a single zero record without
+  planes.
 - Optional lanes outside the measured lines: a 'shoulder' right of the rightmost line
   (`right_shoulder_m`) and a 'border' left of the leftmost (`left_border_m`); off by default
   because they are not measured.
