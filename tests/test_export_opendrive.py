@@ -198,6 +198,7 @@ def test_pieces_join_without_leaps_or_kinks(written, name: str) -> None:
         assert abs((start_h - h + math.pi) % (2 * math.pi) - math.pi) <= 1e-3
         assert nxt["s"] == pytest.approx(prev["s"] + prev["length"], abs=1e-9)
     assert summary.max_leap_m <= 1e-3 and summary.max_kink_rad <= 1e-3
+    assert summary.max_leap_m < 1e-9 and summary.max_kink_rad < 1e-12, "exact by construction, not by luck"
 
 
 @pytest.mark.parametrize("name", ["scurve", "clothoid5km"])
