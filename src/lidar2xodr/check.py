@@ -249,9 +249,9 @@ def print_check(result: dict[str, Any], console: Console, max_issues: int = 20) 
     if "error" in cont:
         table.add_row("geometry", "unreadable")
     elif cont:
-        table.add_row("largest geometry leap [m]", f"{cont['max_leap_m']:.4f}")
-        table.add_row("largest heading kink [rad]", f"{cont['max_kink_rad']:.4f}")
-        table.add_row("largest paramPoly3 length error [m]", f"{cont['max_length_error_m']:.4f}")
+        table.add_row("largest geometry leap (m)", f"{cont['max_leap_m']:.4f}")
+        table.add_row("largest heading kink (rad)", f"{cont['max_kink_rad']:.4f}")
+        table.add_row("largest paramPoly3 length error (m)", f"{cont['max_length_error_m']:.4f}")
     console.print(table)
     groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
     for issue in asam["issues"]:

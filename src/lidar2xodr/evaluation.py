@@ -1,0 +1,398 @@
+"""`lidar2xodr compare`: the paper's parametrisation-invariant lateral distance, made hard to fool.
+
+Both maps are sampled every `sample_step_m` (0.5 m) along every lane section with the project's
+OpenDRIVE reader. Distances are horizontal (x, y): from a sample to the nearest point of the other
+map's polyline (nearest sample by scipy cKDTree, then the exact distance to its two adjacent
+segments), so the result does not depend on where either map puts its samples or geometry pieces.
+
+Carriageway (the same rule for both maps). In every lane section, each side of lane 0 is read as
+OpenDRIVE defines it: right lanes travel along s and left lanes against it under rule="RHT" (the
+other way round under "LHT"). A carriageway is a maximal run of adjacent driving lanes on one side;
+driving lanes are the types in `DRIVING_TYPES` (driving, entry, exit, onRamp, offRamp,
+connectingRamp, slipLane, mwyEntry, mwyExit, bidirectional, HOV, bus, taxi), i.e. every marked lane a
+vehicle may travel on; shoulders, stop (hard shoulder), border, restricted, median, parking, biking
+and sidewalks do not count, because a map built from lane markings cannot see their outer edge. Its
+boundaries are the borders of its lanes (inner border of the innermost to outer border of the
+outermost lane), its centre line is the midpoint between those two outermost borders, its
+half-width half their distance, its lane count the number of its lanes at least
+`lane_count_min_width_m` wide (opening and closing tapers are not lanes yet).
+
+Matching rule (the README quotes this):
+1. Every generated sample is evaluated and nothing is dropped. A generated boundary sample is matched
+   to the nearest boundary of ANY reference carriageway in the whole reference map whose travel
+   direction is within `heading_tolerance_deg` (45 deg) of its own (its own heading taken on
+   `HEADING_BIN_DEG` = 5 deg bins); a generated centre-line sample
+   likewise to the nearest reference carriageway centre line. So a generated line far from every
+   reference line counts with its full distance, and a line on the opposite carriageway is measured
+   against the carriageway of its own direction. (Only if the reference holds no line of that
+   direction at all is the nearest line of any direction used.)
+2. A generated centre sample is "matched" when that nearest reference centre lies within
+   (generated half-width at that sample + `near_m`); a reference centre sample is "near" when the
+   nearest generated centre line (same heading rule) lies within (that generated half-width +
+   `near_m`).
+3. `boundaries.*` and `centerline.*` are statistics of the generated-to-reference distances of rule 1,
+   weighted by the length each sample represents; `eval_length_m` is the generated length evaluated
+   (all boundaries summed, resp. the generated centre lines).
+4. `lane_count_agreement` = generated centre length whose lane count equals the count of its nearest
+   reference carriageway sample and that is matched (rule 2), divided by ALL generated centre length.
+5. `lane_width.bias_m` / `std_m`: for matched samples, every generated lane of full width is paired
+   with the reference lane of the matched sample whose centre is nearest, if the generated lane centre
+   lies inside that reference lane; statistics of generated minus reference width.
+6. `coverage`: the evaluated reference part is, per reference road and side, the stretch of s between
+   the first and the last "near" reference sample (rule 2); coverage = near length / that length.
+   Gaps in the middle (the generated map wanders off or stops and restarts) lower it; reference roads
+   the generated map never comes near are not part of the evaluation (a drive covers only part of a
+   network). A gap spanning whole reference roads between two covered roads is not detected.
+
+Frames: when both maps carry a geoReference and they differ, the generated map is projected into the
+reference's frame with pyproj (headings rotated with it); otherwise both are taken to share one frame
+(`frame` in the result says which). Elevation is not part of the lateral distance.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rich.console import Console
+from rich.table import Table
+from scipy.spatial import cKDTree
+
+from lidar2xodr.config import EvaluationConfig
+from lidar2xodr.errors import InputError
+
+DRIVING_TYPES = frozenset(
+    t.lower()
+    for t in (
+        "driving", "entry", "exit", "onRamp", "offRamp", "connectingRamp", "slipLane", "mwyEntry", "mwyExit",
+        "bidirectional", "HOV", "bus", "taxi",
+    )
+)
+HEADING_BIN_DEG = 5.0
+_K_NEAREST = 4
+
+
+@dataclass
+class Lines:
+    """Polylines flattened into one array: vertex i continues to nxt[i] (-1 at a line's end)."""
+
+    xy: np.ndarray  # (n, 2)
+    hdg: np.ndarray  # (n,) travel heading
+    prv: np.ndarray  # (n,) int
+    nxt: np.ndarray  # (n,) int
+    weight: np.ndarray  # (n,) length each vertex represents
+
+    @classmethod
+    def concat(cls, parts: list[tuple[np.ndarray, np.ndarray]]) -> Lines:
+        """Polylines given as (xy (m, 2), hdg (m,)) pieces."""
+        xy, hdg, prv, nxt, weight = [], [], [], [], []
+        base = 0
+        for pxy, phdg in parts:
+            m = len(pxy)
+            idx = np.arange(base, base + m)
+            prv.append(np.where(idx > base, idx - 1, -1))
+            nxt.append(np.where(idx < base + m - 1, idx + 1, -1))
+            seg = np.hypot(*np.diff(pxy, axis=0).T) if m > 1 else np.zeros(0)
+            weight.append(0.5 * (np.concatenate([[0.0], seg]) + np.concatenate([seg, [0.0]])))
+            xy.append(pxy)
+            hdg.append(phdg)
+            base += m
+        if not parts:
+            return cls(np.zeros((0, 2)), np.zeros(0), np.zeros(0, int), np.zeros(0, int), np.zeros(0))
+        return cls(np.concatenate(xy), np.concatenate(hdg), np.concatenate(prv), np.concatenate(nxt),
+                   np.concatenate(weight))
+
+
+@dataclass
+class Carriageways:
+    """Sampled carriageways of one map: centre lines plus per-sample lanes (padded with NaN)."""
+
+    centre: Lines
+    half_width: np.ndarray  # (n,)
+    group: np.ndarray  # (n,) index of (road, side): stations of one group share the road's s
+    s: np.ndarray  # (n,)
+    lane_xy: np.ndarray  # (n, L, 2) lane centres, NaN-padded, inner to outer
+    lane_width: np.ndarray  # (n, L)
+    boundaries: Lines
+    boundary_query: np.ndarray  # (k,) bool: False for the duplicate outer border of a zero-width lane
+
+    def lane_count(self, min_width: float) -> np.ndarray:
+        return np.sum(np.nan_to_num(self.lane_width, nan=0.0) >= min_width, axis=1)
+
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    return (a + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def _runs(ids: list[int], types: dict[int, str]) -> list[list[int]]:
+    """Maximal runs of adjacent driving lanes among `ids` (ordered inner to outer)."""
+    runs: list[list[int]] = []
+    current: list[int] = []
+    for lid in ids:
+        if types[lid].lower() in DRIVING_TYPES:
+            current.append(lid)
+        elif current:
+            runs.append(current)
+            current = []
+    if current:
+        runs.append(current)
+    return runs
+
+
+def carriageways(odr: Any, step: float, transform: Any = None) -> Carriageways:
+    """Sample every carriageway of a map (see the module docstring for what a carriageway is)."""
+    centres: list[tuple[np.ndarray, np.ndarray]] = []
+    bounds: list[tuple[np.ndarray, np.ndarray]] = []
+    query: list[np.ndarray] = []
+    half, group, s_all, lane_xy, lane_w = [], [], [], [], []
+    groups: dict[tuple[str, int], int] = {}
+    for sec in odr.sample(step):
+        rule = getattr(odr.roads[sec.road_id], "rule", "RHT")
+        border_xy = {lid: sec.border_xyz[lid][:, :2] for lid in sec.lane_ids}
+        hdg = sec.hdg
+        if transform is not None:
+            border_xy, hdg = transform(border_xy, sec.xyz[:, :2], hdg)
+        for side in (1, -1):
+            along = (side == -1) == (str(rule).upper() != "LHT")
+            travel = hdg if along else _wrap(hdg + np.pi)
+            ids = sorted((i for i in sec.lane_ids if i * side > 0), key=abs)
+            for run in _runs(ids, sec.lane_types):
+                border_ids = [run[0] - side, *run]
+                inner, outer = border_xy[border_ids[0]], border_xy[border_ids[-1]]
+                centres.append((0.5 * (inner + outer), travel))
+                half.append(0.5 * np.abs(sec.border_t[border_ids[-1]] - sec.border_t[border_ids[0]]))
+                group.append(np.full(len(sec.s), groups.setdefault((sec.road_id, side), len(groups))))
+                s_all.append(sec.s)
+                prev_t = None
+                for bid in border_ids:
+                    bounds.append((border_xy[bid], travel))
+                    t = sec.border_t[bid]
+                    query.append(np.ones(len(t), bool) if prev_t is None else np.abs(t - prev_t) > 1e-3)
+                    prev_t = t
+                lane_xy.append(np.stack([0.5 * (border_xy[a] + border_xy[b])
+                                         for a, b in zip(border_ids, border_ids[1:], strict=False)], axis=1))
+                lane_w.append(np.stack([np.abs(sec.border_t[b] - sec.border_t[a])
+                                        for a, b in zip(border_ids, border_ids[1:], strict=False)], axis=1))
+    n_lanes = max((w.shape[1] for w in lane_w), default=0)
+    pad_xy = [np.pad(x, ((0, 0), (0, n_lanes - x.shape[1]), (0, 0)), constant_values=np.nan) for x in lane_xy]
+    pad_w = [np.pad(w, ((0, 0), (0, n_lanes - w.shape[1])), constant_values=np.nan) for w in lane_w]
+    cat = (lambda parts, shape: np.concatenate(parts) if parts else np.zeros(shape))  # noqa: E731
+    return Carriageways(
+        centre=Lines.concat(centres),
+        half_width=cat(half, (0,)),
+        group=cat(group, (0,)).astype(int),
+        s=cat(s_all, (0,)),
+        lane_xy=cat(pad_xy, (0, 0, 2)),
+        lane_width=cat(pad_w, (0, 0)),
+        boundaries=Lines.concat(bounds),
+        boundary_query=cat(query, (0,)).astype(bool),
+    )
+
+
+def _segment_distance(lines: Lines, q: np.ndarray, cand: np.ndarray) -> np.ndarray:
+    """Distance from q (m, 2) to the segments around each candidate vertex cand (m, k)."""
+    a = lines.xy[cand]
+    best = np.hypot(*(q[:, None, :] - a).transpose(2, 0, 1))
+    for nb in (lines.prv[cand], lines.nxt[cand]):
+        ok = nb >= 0
+        b = lines.xy[np.where(ok, nb, cand)]
+        ab = b - a
+        len2 = np.maximum(np.sum(ab * ab, axis=2), 1e-300)
+        u = np.clip(np.sum((q[:, None, :] - a) * ab, axis=2) / len2, 0.0, 1.0)
+        foot = a + u[..., None] * ab
+        d = np.hypot(*(q[:, None, :] - foot).transpose(2, 0, 1))
+        best = np.where(ok, np.minimum(best, d), best)
+    return best
+
+
+def nearest(lines: Lines, q: np.ndarray, q_hdg: np.ndarray, tol_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """Distance from each query point to the nearest polyline of agreeing travel heading, and its vertex.
+
+    Queries are grouped by their heading in HEADING_BIN_DEG bins; a line agrees when its heading is
+    within `tol_rad` of the bin centre. Candidates are the nearest agreeing vertices (one cKDTree per
+    distinct set of agreeing vertices); the distance is the exact one to the segments adjacent to
+    them. Where no line of `lines` agrees, the heading is ignored.
+    """
+    bin_rad = math.radians(HEADING_BIN_DEG)
+    n_bins = round(2.0 * math.pi / bin_rad)
+    q_bin = np.floor(np.mod(q_hdg, 2.0 * math.pi) / bin_rad).astype(int) % n_bins
+    dist = np.full(len(q), np.inf)
+    vertex = np.full(len(q), -1)
+    trees: dict[bytes, tuple[np.ndarray, cKDTree]] = {}
+    for b in np.unique(q_bin):
+        agree = np.abs(_wrap(lines.hdg - (b + 0.5) * bin_rad)) <= tol_rad
+        if not agree.any():
+            agree = np.ones(len(lines.hdg), bool)
+        key = np.packbits(agree).tobytes()
+        if key not in trees:
+            sub = np.flatnonzero(agree)
+            trees[key] = (sub, cKDTree(lines.xy[sub]))
+        sub, tree = trees[key]
+        sel = np.flatnonzero(q_bin == b)
+        k = min(_K_NEAREST, len(sub))
+        _, cand = tree.query(q[sel], k=k)
+        cand = sub[np.asarray(cand).reshape(len(sel), k)]
+        d = _segment_distance(lines, q[sel], cand)
+        j = np.argmin(d, axis=1)
+        dist[sel] = d[np.arange(len(sel)), j]
+        vertex[sel] = cand[np.arange(len(sel)), j]
+    return dist, vertex
+
+
+def _stats(d: np.ndarray, w: np.ndarray) -> dict[str, float]:
+    """Length-weighted RMSE, mean, sigma, 95th percentile and maximum of distances d."""
+    total = float(w.sum())
+    if len(d) == 0 or total <= 0:
+        return {"rmse_m": 0.0, "mean_m": 0.0, "std_m": 0.0, "p95_m": 0.0, "max_m": 0.0, "eval_length_m": 0.0}
+    mean = float(np.sum(w * d) / total)
+    order = np.argsort(d, kind="stable")
+    cum = np.cumsum(w[order])
+    p95 = float(d[order][min(np.searchsorted(cum, 0.95 * total), len(d) - 1)])
+    return {
+        "rmse_m": float(math.sqrt(np.sum(w * d * d) / total)),
+        "mean_m": mean,
+        "std_m": float(math.sqrt(max(np.sum(w * (d - mean) ** 2) / total, 0.0))),
+        "p95_m": p95,
+        "max_m": float(d.max()),
+        "eval_length_m": total,
+    }
+
+
+def _frame_transform(gen: Any, ref: Any, gen_path: Path) -> tuple[Any, str]:
+    """Projection of generated coordinates into the reference frame when both geoReferences differ."""
+    g, r = (" ".join(m.geo_reference.split()) if m.geo_reference else None for m in (gen, ref))
+    if not g or not r:
+        return None, "shared local frame (a map has no geoReference)"
+    if g == r:
+        return None, "shared geoReference"
+    from pyproj import CRS, Transformer
+    from pyproj.exceptions import CRSError
+
+    try:
+        tf = Transformer.from_crs(CRS.from_user_input(g), CRS.from_user_input(r), always_xy=True)
+    except CRSError as exc:
+        raise InputError(gen_path, f"geoReference cannot be used to align the maps: {exc}") from None
+
+    def apply(border_xy: dict[int, np.ndarray], ref_xy: np.ndarray, hdg: np.ndarray
+              ) -> tuple[dict[int, np.ndarray], np.ndarray]:
+        out = {k: np.stack(tf.transform(v[:, 0], v[:, 1]), axis=1) for k, v in border_xy.items()}
+        x0, y0 = tf.transform(ref_xy[:, 0], ref_xy[:, 1])
+        x1, y1 = tf.transform(ref_xy[:, 0] + np.cos(hdg), ref_xy[:, 1] + np.sin(hdg))
+        return out, np.arctan2(np.asarray(y1) - y0, np.asarray(x1) - x0)
+
+    return apply, "generated map projected into the reference geoReference"
+
+
+def _load(path: Path) -> Any:
+    from lidar2xodr.opendrive import OpenDriveMap
+
+    return OpenDriveMap.load(path)
+
+
+def compare_maps(generated: Path, reference: Path, cfg: EvaluationConfig) -> dict[str, Any]:
+    """Metrics of a generated map against a reference map (rules in the module docstring)."""
+    generated, reference = Path(generated), Path(reference)
+    gen_map, ref_map = _load(generated), _load(reference)
+    transform, frame = _frame_transform(gen_map, ref_map, generated)
+    gen = carriageways(gen_map, cfg.sample_step_m, transform)
+    ref = carriageways(ref_map, cfg.sample_step_m)
+    for cw, path in ((gen, generated), (ref, reference)):
+        if len(cw.centre.xy) == 0:
+            raise InputError(path, f"no driving lanes to evaluate (lane types counted: {sorted(DRIVING_TYPES)})")
+    tol = math.radians(cfg.heading_tolerance_deg)
+
+    q = gen.boundary_query
+    d_b, _ = nearest(ref.boundaries, gen.boundaries.xy[q], gen.boundaries.hdg[q], tol)
+    d_c, v_c = nearest(ref.centre, gen.centre.xy, gen.centre.hdg, tol)
+    matched = d_c <= gen.half_width + cfg.near_m
+
+    gen_count = gen.lane_count(cfg.lane_count_min_width_m)
+    ref_count = ref.lane_count(cfg.lane_count_min_width_m)
+    w_gen = gen.centre.weight
+    agree = matched & (gen_count == ref_count[v_c])
+    lane_count_agreement = float(np.sum(w_gen[agree]) / max(np.sum(w_gen), 1e-300))
+
+    width = _lane_width(gen, ref, matched, v_c, cfg.lane_count_min_width_m)
+
+    d_r, v_r = nearest(gen.centre, ref.centre.xy, ref.centre.hdg, tol)
+    near = d_r <= gen.half_width[v_r] + cfg.near_m
+    coverage, ref_length = _coverage(ref, near)
+
+    return {
+        "boundaries": _stats(d_b, gen.boundaries.weight[q]),
+        "centerline": _stats(d_c, w_gen),
+        "lane_count_agreement": lane_count_agreement,
+        "lane_width": width,
+        "coverage": coverage,
+        "reference_eval_length_m": ref_length,
+        "frame": frame,
+        "settings": {
+            "sample_step_m": cfg.sample_step_m,
+            "near_m": cfg.near_m,
+            "heading_tolerance_deg": cfg.heading_tolerance_deg,
+            "lane_count_min_width_m": cfg.lane_count_min_width_m,
+        },
+    }
+
+
+def _lane_width(gen: Carriageways, ref: Carriageways, matched: np.ndarray, v_c: np.ndarray, min_w: float
+                ) -> dict[str, float]:
+    """Generated minus reference width of every full-width generated lane inside a reference lane."""
+    idx = np.flatnonzero(matched)
+    if idx.size == 0 or gen.lane_width.shape[1] == 0:
+        return {"bias_m": 0.0, "std_m": 0.0, "pairs": 0}
+    g_xy, g_w = gen.lane_xy[idx], gen.lane_width[idx]  # (m, Lg, 2), (m, Lg)
+    r_xy, r_w = ref.lane_xy[v_c[idx]], ref.lane_width[v_c[idx]]  # (m, Lr, 2), (m, Lr)
+    d = np.hypot(*(g_xy[:, :, None, :] - r_xy[:, None, :, :]).transpose(3, 0, 1, 2))  # (m, Lg, Lr)
+    d = np.where(np.isnan(d), np.inf, d)
+    j = np.argmin(d, axis=2)
+    dj = np.take_along_axis(d, j[..., None], axis=2)[..., 0]
+    rw = np.take_along_axis(r_w, j, axis=1)
+    ok = np.isfinite(dj) & (dj < 0.5 * np.nan_to_num(rw, nan=0.0)) & (g_w >= min_w) & (rw >= min_w)
+    diff = (g_w - rw)[ok]
+    weights = np.broadcast_to(gen.centre.weight[idx][:, None], g_w.shape)[ok]
+    if diff.size == 0 or weights.sum() <= 0:
+        return {"bias_m": 0.0, "std_m": 0.0, "pairs": 0}
+    bias = float(np.sum(weights * diff) / weights.sum())
+    std = float(math.sqrt(np.sum(weights * (diff - bias) ** 2) / weights.sum()))
+    return {"bias_m": bias, "std_m": std, "pairs": int(diff.size)}
+
+
+def _coverage(ref: Carriageways, near: np.ndarray) -> tuple[float, float]:
+    """Near reference length over the reference stretch between the first and last near sample per group."""
+    n_groups = int(ref.group.max()) + 1 if len(ref.group) else 0
+    s_min = np.full(n_groups, np.inf)
+    s_max = np.full(n_groups, -np.inf)
+    np.minimum.at(s_min, ref.group[near], ref.s[near])
+    np.maximum.at(s_max, ref.group[near], ref.s[near])
+    evaluated = (ref.s >= s_min[ref.group]) & (ref.s <= s_max[ref.group])
+    w = ref.centre.weight
+    total = float(np.sum(w[evaluated]))
+    if total <= 0:
+        return 0.0, 0.0
+    return float(np.sum(w[evaluated & near]) / total), total
+
+
+def print_metrics(metrics: dict[str, Any], console: Console) -> None:
+    """The metrics as one rich table."""
+    table = Table(title="generated vs reference (lateral distance, m)")
+    for col in ("lines", "RMSE", "mean", "sigma", "p95", "max", "length (m)"):
+        table.add_column(col, justify="right" if col != "lines" else "left", no_wrap=True)
+    for key in ("boundaries", "centerline"):
+        m = metrics[key]
+        table.add_row(key, *(f"{m[k]:.3f}" for k in ("rmse_m", "mean_m", "std_m", "p95_m", "max_m")),
+                      f"{m['eval_length_m']:.0f}")
+    console.print(table)
+    summary = Table(show_header=False)
+    summary.add_column("item")
+    summary.add_column("value", justify="right")
+    summary.add_row("lane count agreement", f"{metrics['lane_count_agreement']:.3f}")
+    summary.add_row("lane width bias (m)", f"{metrics['lane_width']['bias_m']:+.3f}")
+    summary.add_row("lane width sigma (m)", f"{metrics['lane_width']['std_m']:.3f}")
+    summary.add_row("coverage of the reference", f"{metrics['coverage']:.3f}")
+    summary.add_row("evaluated reference length (m)", f"{metrics['reference_eval_length_m']:.0f}")
+    summary.add_row("frame", metrics["frame"])
+    console.print(summary)
