@@ -105,3 +105,15 @@ def test_demo_road_is_deterministic_and_as_designed(tmp_path: Path) -> None:
     width = road.border_t(s, -3) - road.border_t(s, -4)
     assert width[1] == pytest.approx(LANE_WIDTH, abs=1e-6)
     assert road.superelevation(np.array([800.0]))[0] == pytest.approx(-0.025)
+
+
+def test_atomic_outputs_get_normal_permissions(tmp_path: Path) -> None:
+    """mkstemp makes 0600 files; outputs must be readable like any other file the user writes."""
+    import os
+    import stat
+
+    mask = os.umask(0)
+    os.umask(mask)
+    with atomic_path(tmp_path / "m.xodr") as tmp:
+        tmp.write_text("x")
+    assert stat.S_IMODE((tmp_path / "m.xodr").stat().st_mode) == 0o666 & ~mask
