@@ -27,9 +27,10 @@ Matching rule (the README quotes this):
    against the carriageway of its own direction. (Only if the reference holds no line of that
    direction at all is the nearest line of any direction used.)
 2. A generated centre sample is "matched" when that nearest reference centre lies within
-   (generated half-width at that sample + `near_m`); a reference centre sample is "near" when the
+   (generated half-width at that sample + `near_m`) and the sample is beside it, not beyond its end
+   (more than half a sample step past its first or last point); a reference centre sample is "near" when the
    nearest generated centre line (same heading rule) lies within (that generated half-width +
-   `near_m`).
+   `near_m`) and the sample is beside it.
 3. `boundaries.*` and `centerline.*` are statistics of the generated-to-reference distances of rule 1,
    weighted by the length each sample represents; `eval_length_m` is the generated length evaluated
    (all boundaries summed, resp. the generated centre lines).
@@ -192,24 +193,37 @@ def carriageways(odr: Any, step: float, transform: Any = None) -> Carriageways:
     )
 
 
-def _segment_distance(lines: Lines, q: np.ndarray, cand: np.ndarray) -> np.ndarray:
-    """Distance from q (m, 2) to the segments around each candidate vertex cand (m, k)."""
+def _segment_distance(lines: Lines, q: np.ndarray, cand: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance from q (m, 2) to the segments around each candidate vertex cand (m, k).
+
+    Also says whether q lies beyond the end of the candidate's polyline (farther past its first or
+    last vertex than half the end segment, i.e. the sampling resolution): such a point is not beside
+    the line.
+    """
     a = lines.xy[cand]
-    best = np.hypot(*(q[:, None, :] - a).transpose(2, 0, 1))
-    for nb in (lines.prv[cand], lines.nxt[cand]):
+    qa = q[:, None, :] - a
+    best = np.hypot(qa[..., 0], qa[..., 1])
+    beyond = np.zeros(cand.shape, bool)
+    for nb, sign in ((lines.prv[cand], 1.0), (lines.nxt[cand], -1.0)):
         ok = nb >= 0
         b = lines.xy[np.where(ok, nb, cand)]
         ab = b - a
-        len2 = np.maximum(np.sum(ab * ab, axis=2), 1e-300)
-        u = np.clip(np.sum((q[:, None, :] - a) * ab, axis=2) / len2, 0.0, 1.0)
-        foot = a + u[..., None] * ab
-        d = np.hypot(*(q[:, None, :] - foot).transpose(2, 0, 1))
-        best = np.where(ok, np.minimum(best, d), best)
-    return best
+        dot = np.sum(qa * ab, axis=2)
+        u = np.clip(dot / np.maximum(np.sum(ab * ab, axis=2), 1e-300), 0.0, 1.0)
+        foot = qa - u[..., None] * ab
+        best = np.where(ok, np.minimum(best, np.hypot(foot[..., 0], foot[..., 1])), best)
+        other = lines.nxt[cand] if sign > 0 else lines.prv[cand]
+        c = lines.xy[np.where(other >= 0, other, cand)]
+        ac = a - c
+        beyond |= ~ok & ((other < 0) | (np.sum(qa * ac, axis=2) > 0.5 * np.sum(ac * ac, axis=2)))
+    beyond &= best > 1e-9
+    return best, beyond
 
 
-def nearest(lines: Lines, q: np.ndarray, q_hdg: np.ndarray, tol_rad: float) -> tuple[np.ndarray, np.ndarray]:
-    """Distance from each query point to the nearest polyline of agreeing travel heading, and its vertex.
+def nearest(lines: Lines, q: np.ndarray, q_hdg: np.ndarray, tol_rad: float
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Distance from each query point to the nearest polyline of agreeing travel heading, its vertex,
+    and whether the point lies beyond that polyline's end (see `_segment_distance`).
 
     Queries are grouped by their heading in HEADING_BIN_DEG bins; a line agrees when its heading is
     within `tol_rad` of the bin centre. Candidates are the nearest agreeing vertices (one cKDTree per
@@ -221,6 +235,7 @@ def nearest(lines: Lines, q: np.ndarray, q_hdg: np.ndarray, tol_rad: float) -> t
     q_bin = np.floor(np.mod(q_hdg, 2.0 * math.pi) / bin_rad).astype(int) % n_bins
     dist = np.full(len(q), np.inf)
     vertex = np.full(len(q), -1)
+    beyond = np.zeros(len(q), bool)
     trees: dict[bytes, tuple[np.ndarray, cKDTree]] = {}
     for b in np.unique(q_bin):
         agree = np.abs(_wrap(lines.hdg - (b + 0.5) * bin_rad)) <= tol_rad
@@ -235,11 +250,11 @@ def nearest(lines: Lines, q: np.ndarray, q_hdg: np.ndarray, tol_rad: float) -> t
         k = min(_K_NEAREST, len(sub))
         _, cand = tree.query(q[sel], k=k)
         cand = sub[np.asarray(cand).reshape(len(sel), k)]
-        d = _segment_distance(lines, q[sel], cand)
+        d, past = _segment_distance(lines, q[sel], cand)
         j = np.argmin(d, axis=1)
-        dist[sel] = d[np.arange(len(sel)), j]
-        vertex[sel] = cand[np.arange(len(sel)), j]
-    return dist, vertex
+        rows = np.arange(len(sel))
+        dist[sel], vertex[sel], beyond[sel] = d[rows, j], cand[rows, j], past[rows, j]
+    return dist, vertex, beyond
 
 
 def _stats(d: np.ndarray, w: np.ndarray) -> dict[str, float]:
@@ -305,9 +320,9 @@ def compare_maps(generated: Path, reference: Path, cfg: EvaluationConfig) -> dic
     tol = math.radians(cfg.heading_tolerance_deg)
 
     q = gen.boundary_query
-    d_b, _ = nearest(ref.boundaries, gen.boundaries.xy[q], gen.boundaries.hdg[q], tol)
-    d_c, v_c = nearest(ref.centre, gen.centre.xy, gen.centre.hdg, tol)
-    matched = d_c <= gen.half_width + cfg.near_m
+    d_b, _, _ = nearest(ref.boundaries, gen.boundaries.xy[q], gen.boundaries.hdg[q], tol)
+    d_c, v_c, past_c = nearest(ref.centre, gen.centre.xy, gen.centre.hdg, tol)
+    matched = (d_c <= gen.half_width + cfg.near_m) & ~past_c
 
     gen_count = gen.lane_count(cfg.lane_count_min_width_m)
     ref_count = ref.lane_count(cfg.lane_count_min_width_m)
@@ -317,8 +332,8 @@ def compare_maps(generated: Path, reference: Path, cfg: EvaluationConfig) -> dic
 
     width = _lane_width(gen, ref, matched, v_c, cfg.lane_count_min_width_m)
 
-    d_r, v_r = nearest(gen.centre, ref.centre.xy, ref.centre.hdg, tol)
-    near = d_r <= gen.half_width[v_r] + cfg.near_m
+    d_r, v_r, past_r = nearest(gen.centre, ref.centre.xy, ref.centre.hdg, tol)
+    near = (d_r <= gen.half_width[v_r] + cfg.near_m) & ~past_r
     coverage, ref_length = _coverage(ref, near)
 
     return {

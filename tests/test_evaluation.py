@@ -1,0 +1,220 @@
+"""`compare`: the lateral distance must be exact for known offsets and impossible to fool."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from lxml import etree
+from typer.testing import CliRunner
+
+from lidar2xodr.cli import app
+from lidar2xodr.config import EvaluationConfig
+from lidar2xodr.errors import InputError
+from lidar2xodr.evaluation import compare_maps
+
+CFG = EvaluationConfig()
+DRV = ("driving", 3.5)
+MEDIAN = ("border", 1.0)
+ARC = '<arc curvature="0.002"/>'
+TMERC = "+proj=tmerc +lat_0=48.78 +lon_0=9.18 +k=1 +x_0={x0} +y_0={y0} +ellps=WGS84 +units=m +no_defs"
+
+
+def _lanes(tag: str, spec: tuple, sign: int) -> str:
+    items = "".join(
+        f'<lane id="{sign * (i + 1)}" type="{t}" level="false"><width sOffset="0" a="{w}" b="0" c="0" d="0"/></lane>'
+        for i, (t, w) in enumerate(spec)
+    )
+    return f"<{tag}>{items}</{tag}>" if spec else ""
+
+
+def _road(rid: str, length: float, right: tuple = (MEDIAN, DRV, DRV), left: tuple = (), x: float = 0.0,
+          y: float = 0.0, hdg: float = 0.0, offset: float = 0.0, geom: str = "<line/>") -> str:
+    """A one-section road; lanes given inner to outer as (type, width)."""
+    return (
+        f'<road id="{rid}" length="{length}" junction="-1" rule="RHT"><planView>'
+        f'<geometry s="0" x="{x}" y="{y}" hdg="{hdg}" length="{length}">{geom}</geometry></planView>'
+        f'<lanes><laneOffset s="0" a="{offset}" b="0" c="0" d="0"/><laneSection s="0">{_lanes("left", left, 1)}'
+        f'<center><lane id="0" type="none" level="false"/></center>{_lanes("right", right, -1)}'
+        "</laneSection></lanes></road>"
+    )
+
+
+def _map(path: Path, *roads: str, geo: str | None = None) -> Path:
+    geo_el = f"<geoReference><![CDATA[{geo}]]></geoReference>" if geo else ""
+    path.write_text(
+        '<?xml version="1.0" encoding="UTF-8"?>\n<OpenDRIVE><header revMajor="1" revMinor="8" name="t" '
+        f'version="1">{geo_el}</header>{"".join(roads)}</OpenDRIVE>\n',
+        encoding="utf-8",
+    )
+    return path
+
+
+def _both(length: float = 300.0, **kw: object) -> str:
+    """A divided motorway in one road: median border lanes, two 3.5 m lanes each way."""
+    return _road("1", length, right=(MEDIAN, DRV, DRV), left=(MEDIAN, DRV, DRV), **kw)  # type: ignore[arg-type]
+
+
+def _shift_lane_offsets(src: Path, dst: Path, dt: float) -> Path:
+    """Copy of a map with every lane moved dt sideways (laneOffset + dt on every road)."""
+    tree = etree.parse(str(src))
+    for lanes in tree.getroot().iter("lanes"):
+        offsets = lanes.findall("laneOffset")
+        if not offsets:
+            offsets = [etree.Element("laneOffset", s="0", a="0", b="0", c="0", d="0")]
+            lanes.insert(0, offsets[0])
+        for el in offsets:
+            el.set("a", repr(float(el.get("a")) + dt))
+    tree.write(str(dst))
+    return dst
+
+
+def _assert_zero(m: dict) -> None:
+    for key in ("boundaries", "centerline"):
+        assert m[key]["rmse_m"] == pytest.approx(0.0, abs=1e-9)
+        assert m[key]["max_m"] == pytest.approx(0.0, abs=1e-9)
+        assert m[key]["eval_length_m"] > 0
+    assert m["lane_count_agreement"] == pytest.approx(1.0)
+    assert m["lane_width"]["bias_m"] == pytest.approx(0.0, abs=1e-9) and m["lane_width"]["pairs"] > 0
+    assert m["coverage"] == pytest.approx(1.0)
+
+
+def test_identical_tiny_map_is_zero(tmp_path: Path) -> None:
+    ref = _map(tmp_path / "ref.xodr", _both(geom=ARC))
+    m = compare_maps(ref, ref, CFG)
+    _assert_zero(m)
+    # Two carriageways x three boundaries x ~300 m (the arc shifts the borders' length a little).
+    assert m["boundaries"]["eval_length_m"] == pytest.approx(6 * 300, rel=0.02)
+    assert m["reference_eval_length_m"] == pytest.approx(600, rel=0.02)
+
+
+def test_identical_shared_highway_is_zero(shared_data: Path) -> None:
+    path = shared_data / "maps" / "asam" / "AB_RQ31_R2000.xodr"
+    m = compare_maps(path, path, CFG)
+    _assert_zero(m)
+    assert m["boundaries"]["eval_length_m"] > 10_000
+
+
+@pytest.mark.parametrize("dt", [0.30, -0.30])
+def test_tiny_map_shifted_sideways(tmp_path: Path, dt: float) -> None:
+    ref = _map(tmp_path / "ref.xodr", _both(geom=ARC))
+    gen = _shift_lane_offsets(ref, tmp_path / "gen.xodr", dt)
+    m = compare_maps(gen, ref, CFG)
+    for key in ("boundaries", "centerline"):
+        assert m[key]["mean_m"] == pytest.approx(0.30, abs=1e-3)
+        assert m[key]["rmse_m"] == pytest.approx(0.30, abs=1e-3)
+        assert m[key]["max_m"] == pytest.approx(0.30, abs=1e-3)
+    assert m["lane_count_agreement"] == pytest.approx(1.0)
+    assert m["lane_width"]["bias_m"] == pytest.approx(0.0, abs=1e-9)
+    assert m["coverage"] == pytest.approx(1.0)
+
+
+def test_shared_highway_shifted_sideways(shared_data: Path, tmp_path: Path) -> None:
+    ref = shared_data / "maps" / "asam" / "AB_RQ31_R2000.xodr"
+    m = compare_maps(_shift_lane_offsets(ref, tmp_path / "gen.xodr", 0.30), ref, CFG)
+    assert m["boundaries"]["mean_m"] == pytest.approx(0.30, abs=1e-3)
+    assert m["boundaries"]["rmse_m"] == pytest.approx(0.30, abs=1e-3)
+    assert m["centerline"]["rmse_m"] == pytest.approx(0.30, abs=1e-3)
+
+
+def test_missing_lane_lowers_lane_count_agreement(tmp_path: Path) -> None:
+    ref = _map(tmp_path / "ref.xodr", _both())
+    gen = _map(tmp_path / "gen.xodr", _road("1", 300, right=(MEDIAN, DRV, ("shoulder", 3.5)),
+                                            left=(MEDIAN, DRV, DRV)))
+    m = compare_maps(gen, ref, CFG)
+    assert m["lane_count_agreement"] == pytest.approx(0.5, abs=0.01)  # right carriageway: 1 lane, not 2
+    assert m["boundaries"]["max_m"] == pytest.approx(0.0, abs=1e-9)  # what is there is right
+    assert m["centerline"]["max_m"] == pytest.approx(1.75, abs=1e-6)  # its centre moves half a lane
+
+
+def test_far_away_map_is_not_small(tmp_path: Path) -> None:
+    ref = _map(tmp_path / "ref.xodr", _both())
+    gen = _map(tmp_path / "gen.xodr", _both(y=-50.0))
+    m = compare_maps(gen, ref, CFG)
+    assert m["boundaries"]["mean_m"] > 35.0 and m["boundaries"]["max_m"] >= 50.0 - 1e-6
+    assert m["centerline"]["mean_m"] == pytest.approx(50.0, abs=1e-6)
+    assert m["lane_count_agreement"] == 0.0 and m["coverage"] == 0.0
+    assert m["lane_width"]["pairs"] == 0
+
+
+def test_opposite_direction_is_not_matched(tmp_path: Path) -> None:
+    """A generated carriageway drawn exactly on the reference's right lanes but travelling the wrong way."""
+    ref = _map(tmp_path / "ref.xodr", _both())
+    # Heading pi: its right lanes lie at +y from its reference line, i.e. on y in [-8, -1].
+    gen = _map(tmp_path / "gen.xodr", _road("9", 300, x=300.0, y=-8.0, hdg=3.141592653589793,
+                                            right=(DRV, DRV, MEDIAN)))
+    m = compare_maps(gen, ref, CFG)
+    # Its borders at y = -8, -4.5, -1 are measured against the -x carriageway's at y = 1, 4.5, 8: 9, 5.5, 2 m.
+    assert m["boundaries"]["mean_m"] == pytest.approx(5.5, abs=1e-6)
+    assert m["lane_count_agreement"] == 0.0
+
+
+def test_one_carriageway_against_a_divided_road(tmp_path: Path) -> None:
+    """The opposite carriageway of the reference is neither evaluated nor needed for full coverage."""
+    ref = _map(tmp_path / "ref.xodr", _both(geom=ARC))
+    gen = _map(tmp_path / "gen.xodr", _road("7", 300, geom=ARC))
+    m = compare_maps(gen, ref, CFG)
+    _assert_zero(m)
+    assert m["reference_eval_length_m"] == pytest.approx(300, rel=0.02)
+
+
+def test_gap_and_overhang_are_counted(tmp_path: Path) -> None:
+    ref = _map(tmp_path / "ref.xodr", _road("1", 300))
+    gen = _map(tmp_path / "gen.xodr", _road("1", 100), _road("2", 100, x=200.0))
+    m = compare_maps(gen, ref, CFG)
+    assert m["coverage"] == pytest.approx(2 / 3, abs=0.01)
+    assert m["boundaries"]["max_m"] == pytest.approx(0.0, abs=1e-9)
+    longer = _map(tmp_path / "long.xodr", _road("1", 400))
+    m = compare_maps(longer, ref, CFG)
+    assert m["boundaries"]["max_m"] == pytest.approx(100.0, abs=1e-6)  # 100 m past the reference's end
+    assert m["lane_count_agreement"] == pytest.approx(0.75, abs=0.005)  # the overhang matches nothing
+    assert m["coverage"] == pytest.approx(1.0)
+
+
+def test_lane_width_bias(tmp_path: Path) -> None:
+    ref = _map(tmp_path / "ref.xodr", _road("1", 300))
+    gen = _map(tmp_path / "gen.xodr", _road("1", 300, right=(MEDIAN, ("driving", 3.6), ("driving", 3.6))))
+    m = compare_maps(gen, ref, CFG)
+    assert m["lane_width"]["bias_m"] == pytest.approx(0.10, abs=1e-9)
+    assert m["lane_width"]["std_m"] == pytest.approx(0.0, abs=1e-9)
+    assert m["lane_count_agreement"] == pytest.approx(1.0)
+    # Boundaries at 0, 0.1 and 0.2 m from their reference lines.
+    assert m["boundaries"]["mean_m"] == pytest.approx(0.10, abs=1e-3)
+    assert m["centerline"]["mean_m"] == pytest.approx(0.10, abs=1e-6)
+
+
+def test_geo_references_are_aligned(tmp_path: Path) -> None:
+    ref = _map(tmp_path / "ref.xodr", _both(), geo=TMERC.format(x0=0, y0=0))
+    # The same road, stored 100 m east and 50 m north in a frame whose false origin says exactly that.
+    gen = _map(tmp_path / "gen.xodr", _both(x=100.0, y=50.0), geo=TMERC.format(x0=100, y0=50))
+    m = compare_maps(gen, ref, CFG)
+    assert "projected" in m["frame"]
+    assert m["boundaries"]["max_m"] < 1e-6 and m["coverage"] == pytest.approx(1.0)
+    unaligned = _map(tmp_path / "gen2.xodr", _both(x=100.0, y=50.0))
+    assert compare_maps(unaligned, ref, CFG)["boundaries"]["mean_m"] > 10.0
+
+
+def test_cli_json_is_deterministic(tmp_path: Path) -> None:
+    ref = _map(tmp_path / "ref.xodr", _both(geom=ARC))
+    gen = _shift_lane_offsets(ref, tmp_path / "gen.xodr", 0.3)
+    outs = []
+    for name in ("a.json", "b.json"):
+        res = CliRunner().invoke(app, ["compare", str(gen), str(ref), "--json", str(tmp_path / name)])
+        assert res.exit_code == 0, res.output
+        outs.append((tmp_path / name).read_bytes())
+    assert outs[0] == outs[1]
+    data = json.loads(outs[0])
+    assert set(data["boundaries"]) >= {"rmse_m", "mean_m", "std_m", "p95_m", "max_m", "eval_length_m"}
+    assert {"lane_count_agreement", "coverage", "lane_width", "centerline"} <= set(data)
+
+
+def test_bad_input(tmp_path: Path) -> None:
+    ref = _map(tmp_path / "ref.xodr", _both())
+    no_lanes = _map(tmp_path / "none.xodr", _road("1", 100, right=(("shoulder", 2.0),)))
+    with pytest.raises(InputError, match="no driving lanes"):
+        compare_maps(no_lanes, ref, CFG)
+    with pytest.raises(InputError, match="not found"):
+        compare_maps(tmp_path / "absent.xodr", ref, CFG)
+    res = CliRunner().invoke(app, ["compare", str(no_lanes), str(ref)])
+    assert res.exit_code == 2 and "Traceback" not in res.output
