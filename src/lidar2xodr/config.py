@@ -42,8 +42,8 @@ class ExtractionConfig(_Section):
     ransac_sample_points: int = Field(4000, description="ours: points that score the RANSAC hypotheses")
     auto_threshold_scans: int = Field(10, description="ours: scans whose ground intensities set the auto threshold")
     auto_threshold_range_m: float = Field(40.0, description="ours: ground points within this radius feed it")
-    auto_threshold_min_separation: float = Field(
-        2.0, description="ours: Otsu classes closer than this (mean gap / pooled sigma) fall back to the fixed one")
+    auto_threshold_mad_k: float = Field(3.0, description="ours: the auto threshold is at least median + k robust "
+                                        "sigmas (MAD) of the road intensities: paint is an outlier of the road")
     pose_time_tolerance_s: float = Field(0.1, description="ours: point times may exceed the poses by this much")
     odometry_voxel_m: float = Field(1.0, description="ours: KISS-ICP voxel size (highway structure is coarse)")
     odometry_max_range_m: float = Field(80.0, description="ours: KISS-ICP uses points within this radius")
