@@ -15,7 +15,10 @@ and sidewalks do not count, because a map built from lane markings cannot see th
 boundaries are the borders of its lanes (inner border of the innermost to outer border of the
 outermost lane), its centre line is the midpoint between those two outermost borders, its
 half-width half their distance, its lane count the number of its lanes at least
-`lane_count_min_width_m` wide (opening and closing tapers are not lanes yet).
+`lane_count_min_width_m` wide (opening and closing tapers are not lanes yet). The generated map's
+centre line is derived the same way, not read from its planView: a lidar2xodr map's reference line
+is the road centre, so the two coincide there, and deriving it keeps the metric symmetric
+(`compare X X` is 0 for any map, wherever it puts its reference line).
 
 Matching rule (the README quotes this):
 1. Every generated sample is evaluated and nothing is dropped. A generated boundary sample is matched
@@ -87,7 +90,7 @@ class Lines:
     weight: np.ndarray  # (n,) length each vertex represents
 
     @classmethod
-    def concat(cls, parts: list[tuple[np.ndarray, np.ndarray]]) -> Lines:
+    def con_cat(cls, parts: list[tuple[np.ndarray, np.ndarray]]) -> Lines:
         """Polylines given as (xy (m, 2), hdg (m,)) pieces."""
         xy, hdg, prv, nxt, weight = [], [], [], [], []
         base = 0
@@ -122,6 +125,10 @@ class Carriageways:
 
     def lane_count(self, min_width: float) -> np.ndarray:
         return np.sum(np.nan_to_num(self.lane_width, nan=0.0) >= min_width, axis=1)
+
+
+def _cat(parts: list[np.ndarray], empty_shape: tuple[int, ...]) -> np.ndarray:
+    return np.concatenate(parts) if parts else np.zeros(empty_shape)
 
 
 def _wrap(a: np.ndarray) -> np.ndarray:
@@ -180,16 +187,15 @@ def carriageways(odr: Any, step: float, transform: Any = None) -> Carriageways:
     n_lanes = max((w.shape[1] for w in lane_w), default=0)
     pad_xy = [np.pad(x, ((0, 0), (0, n_lanes - x.shape[1]), (0, 0)), constant_values=np.nan) for x in lane_xy]
     pad_w = [np.pad(w, ((0, 0), (0, n_lanes - w.shape[1])), constant_values=np.nan) for w in lane_w]
-    cat = (lambda parts, shape: np.concatenate(parts) if parts else np.zeros(shape))  # noqa: E731
     return Carriageways(
-        centre=Lines.concat(centres),
-        half_width=cat(half, (0,)),
-        group=cat(group, (0,)).astype(int),
-        s=cat(s_all, (0,)),
-        lane_xy=cat(pad_xy, (0, 0, 2)),
-        lane_width=cat(pad_w, (0, 0)),
-        boundaries=Lines.concat(bounds),
-        boundary_query=cat(query, (0,)).astype(bool),
+        centre=Lines.con_cat(centres),
+        half_width=_cat(half, (0,)),
+        group=_cat(group, (0,)).astype(int),
+        s=_cat(s_all, (0,)),
+        lane_xy=_cat(pad_xy, (0, 0, 2)),
+        lane_width=_cat(pad_w, (0, 0)),
+        boundaries=Lines.con_cat(bounds),
+        boundary_query=_cat(query, (0,)).astype(bool),
     )
 
 
