@@ -11,13 +11,16 @@ Decisions:
   the direction of travel (roll and pitch zero) and fixes with status < 0 are dropped.
 - The cloud's frame is the sensor frame; TF is not read, so the mount is estimated from the
   first scan's ground plane, and the lever arm between sensor and pose frame is ignored.
-- Scan stamp: the message header stamp. Per-point times within 1 s of it are absolute; times
-  with |median| < 1 s (after the unit guess) are offsets added to it.
-- A bare `.mcap` file needs the rosbag2 `metadata.yaml` beside it (`ros2 bag reindex` makes it).
+- Per-point times within 1 s of the header stamp are absolute; times with |median| < 1 s (after
+  the unit guess) are offsets added to it. The scan stamp follows `base` (last point time, else
+  the header stamp).
+- A bare ROS 2 `.mcap` file (no metadata.yaml beside it, as the simulator writes) is read through
+  a metadata.yaml generated from the file's own summary in a temporary folder.
 """
 
 from __future__ import annotations
 
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -43,20 +46,61 @@ def is_rosbag(path: Path) -> bool:
     return (path / "metadata.yaml").is_file() or any(path.glob("*.bag"))
 
 
-def _bag_paths(path: Path) -> list[Path]:
+def _mcap_metadata(mcap: Path) -> dict[str, Any]:
+    """rosbag2 metadata for a bare ROS 2 MCAP file, from its summary (channels, per-chunk counts)."""
+    from rosbags.rosbag2.storage_mcap import MCAPFile
+
+    f = MCAPFile(mcap)
+    try:
+        f.open()
+        if not f.channels:
+            f.meta_scan()
+    except Exception as exc:  # rosbags raises ReaderError, AssertionError, struct errors
+        raise InputError(mcap, f"cannot read MCAP: {exc}") from None
+    finally:
+        if f.bio is not None:
+            f.close()
+    counts: dict[int, int] = {}
+    for chunk in f.chunks:
+        for cid, n in chunk.channel_count.items():
+            counts[cid] = counts.get(cid, 0) + n
+    topics = [
+        {"message_count": counts.get(cid, 0),
+         "topic_metadata": {"name": ch.topic, "type": ch.schema, "serialization_format": ch.message_encoding,
+                            "offered_qos_profiles": "", "type_description_hash": ""}}
+        for cid, ch in sorted(f.channels.items())
+    ]
+    total = sum(counts.values())
+    return {"rosbag2_bagfile_information": {
+        "version": 8, "storage_identifier": "mcap", "relative_file_paths": [mcap.name],
+        "duration": {"nanoseconds": 0}, "starting_time": {"nanoseconds_since_epoch": 0},
+        "message_count": total, "topics_with_message_count": topics,
+        "compression_format": "", "compression_mode": "", "custom_data": None, "ros_distro": "",
+        "files": [{"path": mcap.name, "starting_time": {"nanoseconds_since_epoch": 0},
+                   "duration": {"nanoseconds": 0}, "message_count": total}],
+    }}
+
+
+def _bag_paths(path: Path, scratch: Path) -> list[Path]:
+    """What AnyReader opens; a bare .mcap gets a generated metadata.yaml in `scratch`."""
     if path.is_file() and path.suffix == ".bag":
         return [path]
     if path.is_file():
         if (path.parent / "metadata.yaml").is_file():
             return [path.parent]
-        raise InputError(path, "a ROS 2 storage file needs the rosbag2 metadata.yaml beside it "
-                         "(run `ros2 bag reindex` on its folder)")
+        if path.suffix != ".mcap":
+            raise InputError(path, "a rosbag2 storage file needs the metadata.yaml beside it")
+        import yaml
+
+        (scratch / path.name).symlink_to(path.resolve())
+        (scratch / "metadata.yaml").write_text(yaml.safe_dump(_mcap_metadata(path)), encoding="utf-8")
+        return [scratch]
     if (path / "metadata.yaml").is_file():
         return [path]
     bags = sorted(path.glob("*.bag"))
     if bags:
         return bags
-    raise InputError(path, "no ROS bag found (a .bag file, a folder of .bag files, or a rosbag2 folder)")
+    raise InputError(path, "no ROS bag found (a .bag file, a folder of .bag files, a rosbag2 folder or .mcap)")
 
 
 def stamp_seconds(header: Any) -> float:
@@ -117,7 +161,8 @@ class RosbagDataset(ScanFileDataset):
 
         super().__init__()
         self.path = path
-        self._paths = _bag_paths(path)
+        self._scratch = tempfile.TemporaryDirectory(prefix="lidar2xodr-bag-")
+        self._paths = _bag_paths(path, Path(self._scratch.name))
         self._AnyReader = AnyReader
         try:
             with AnyReader(self._paths) as reader:
