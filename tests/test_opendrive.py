@@ -10,7 +10,7 @@ import pytest
 from scipy.integrate import quad
 
 from lidar2xodr.errors import InputError
-from lidar2xodr.opendrive import BROKEN_DASH_M, BROKEN_GAP_M, DOUBLE_LINE_GAP_M, OpenDriveMap
+from lidar2xodr.opendrive import BROKEN_DASH_M, BROKEN_GAP_M, DOUBLE_LINE_GAP_M, MARK_WIDTH_M, OpenDriveMap
 
 LANES = """<lanes>{offset}<laneSection s="0"><left><lane id="1" type="driving">
  <width sOffset="0" a="3.5" b="0" c="0" d="0"/></lane></left>
@@ -34,6 +34,13 @@ def xodr(
         f'<road id="7" name="r" length="{length}" junction="-1" {road_attrs}>'
         f"<planView>{geometry}</planView>{extra}{lanes.format(offset=offset)}</road></OpenDRIVE>"
     )
+
+
+_LANE1 = '<lane id="1" type="driving"><width sOffset="0" a="1"/></lane>'
+_ROAD7 = (
+    '<road id="7" length="10" junction="-1"><planView><geometry s="0" x="0" y="0" hdg="0" length="10"><line/>'
+    "</geometry></planView>" + LANES.format(offset="") + "</road>"
+)
 
 
 def load(tmp_path: Path, text: str, name: str = "m.xodr") -> OpenDriveMap:
@@ -247,39 +254,156 @@ def test_road_marks_links_and_junctions(tmp_path: Path) -> None:
     )
 
 
+def test_section_end_takes_limits_from_below(tmp_path: Path) -> None:
+    """A laneOffset/width record starting at the next section must not leak into this section's end."""
+    lanes = """<lanes>{offset}<laneSection s="0"><center><lane id="0"/></center><right>
+      <lane id="-1" type="driving"><width sOffset="0" a="3"/></lane></right></laneSection>
+      <laneSection s="20"><center><lane id="0"/></center><right><lane id="-1" type="driving">
+      <width sOffset="0" a="5"/></lane></right></laneSection></lanes>"""
+    offset = '<laneOffset s="0" a="0"/><laneOffset s="20" a="10"/>'
+    m = load(tmp_path, xodr(geom("<line/>", 40), 40, lanes=lanes, offset=offset))
+    first, second = m.sample(5.0)
+    np.testing.assert_allclose(first.border_t[0], 0.0)
+    np.testing.assert_allclose(first.border_t[-1], -3.0)
+    np.testing.assert_allclose(second.border_t[-1], 5.0)
+    # the road itself is half-open: at s = 20 the next section and record apply
+    assert m.roads["7"].border_t(20.0, -1)[0] == pytest.approx(5.0)
+    assert m.roads["7"].lane_offset(20.0, left=True)[0] == 0.0
+
+
+def test_sample_matches_to_world_with_superelevation(tmp_path: Path) -> None:
+    extra = (
+        '<elevationProfile><elevation s="0" a="3" b="0.01"/></elevationProfile>'
+        '<lateralProfile><superelevation s="0" a="0.02" b="0.0005"/></lateralProfile>'
+    )
+    g = geom('<spiral curvStart="0" curvEnd="0.01"/>', 30) + geom('<arc curvature="0.01"/>', 30, s=30)
+    m = load(tmp_path, xodr(g, 60, extra=extra, offset='<laneOffset s="0" a="0.3" b="0.01"/>'))
+    road = m.roads["7"]
+    x, y, h = road.geometries[0].eval(30.0)
+    road.geometries[1].x, road.geometries[1].y, road.geometries[1].hdg = float(x[0]), float(y[0]), float(h[0])
+    (sec,) = m.sample(0.7)
+    assert sec.s[0] == 0.0 and sec.s[-1] == 60.0 and np.all(np.diff(sec.s) <= 0.7 + 1e-12)
+    assert sec.lane_ids == [-1, 0, 1]
+    for lid in sec.lane_ids:
+        np.testing.assert_allclose(sec.border_t[lid], road.border_t(sec.s, lid), atol=1e-12)
+        np.testing.assert_allclose(sec.border_xyz[lid], road.to_world(sec.s, sec.border_t[lid]), atol=1e-9)
+    np.testing.assert_allclose(sec.xyz, road.to_world(sec.s, 0.0), atol=1e-12)
+    # the roll keeps every border at its lateral distance from the reference line in 3D
+    d = np.linalg.norm(sec.border_xyz[1] - sec.xyz, axis=1)
+    np.testing.assert_allclose(d, np.abs(sec.border_t[1]), rtol=1e-12)
+
+
+def test_double_marks_read_inside_out(tmp_path: Path) -> None:
+    lanes = """<lanes><laneSection s="0"><left><lane id="1" type="driving"><width sOffset="0" a="3.5"/>
+      <roadMark sOffset="0" type="solid broken" width="0.15"/></lane></left><center><lane id="0"/></center>
+      <right><lane id="-1" type="driving"><width sOffset="0" a="3.5"/>
+      <roadMark sOffset="0" type="solid broken" width="0.15"/></lane><lane id="-2" type="shoulder">
+      <width sOffset="0" a="1"/><roadMark type="botts dots"/><roadMark sOffset="3" type="curb"/></lane>
+      </right></laneSection></lanes>"""
+    lanes_ = load(tmp_path, xodr(geom("<line/>", 50), 50, lanes=lanes)).roads["7"].lane_sections[0].lanes
+    half = 0.5 * (DOUBLE_LINE_GAP_M + 0.15)
+    left, right = lanes_[1].road_marks[0].lines, lanes_[-1].road_marks[0].lines
+    assert [(ln.space, ln.t_offset) for ln in left] == [
+        (0.0, pytest.approx(-half)),
+        (BROKEN_GAP_M, pytest.approx(half)),
+    ]
+    assert [(ln.space, ln.t_offset) for ln in right] == [
+        (0.0, pytest.approx(half)),
+        (BROKEN_GAP_M, pytest.approx(-half)),
+    ]
+    dots, curb = lanes_[-2].road_marks
+    assert dots.width == MARK_WIDTH_M["standard"] and len(dots.lines) == 1 and dots.lines[0].space > 0
+    assert curb.type == "curb" and curb.lines == [] and curb.s_offset == 3
+
+
+def test_border_lanes_and_widths(tmp_path: Path) -> None:
+    """<border> gives the outer border's distance from the lane reference line; widths win over borders."""
+    lanes = """<lanes>{offset}<laneSection s="0"><left><lane id="1" type="driving">
+      <border sOffset="0" a="3" b="0.01"/></lane><lane id="2" type="shoulder"><width sOffset="0" a="1"/>
+      </lane></left><center><lane id="0"/></center><right><lane id="-1" type="driving">
+      <width sOffset="0" a="3.5"/><border sOffset="0" a="99"/></lane></right></laneSection></lanes>"""
+    m = load(tmp_path, xodr(geom("<line/>", 50), 50, lanes=lanes, offset='<laneOffset s="0" a="0.5"/>'))
+    road = m.roads["7"]
+    np.testing.assert_allclose(road.border_t([0.0, 10.0], 1), [3.5, 3.6])
+    np.testing.assert_allclose(road.border_t([0.0, 10.0], 2), [4.5, 4.6])
+    np.testing.assert_allclose(road.border_t(10.0, -1), [-3.0])
+    assert np.isnan(road.lane_sections[0].lanes[1].width(0.0)[0])
+    np.testing.assert_allclose(road.lane_sections[0].lanes[-1].width([0.0, 9.0]), 3.5)
+
+
+def test_reference_extrapolates_past_the_last_geometry(tmp_path: Path) -> None:
+    m = load(tmp_path, xodr(geom('<arc curvature="0.01"/>', 10, s=5), 15))
+    x, _, h = m.roads["7"].reference([0.0, 20.0])
+    assert x[0] < 0 and h[1] == pytest.approx(0.15)
+
+
 # ---------------------------------------------------------------------------------------------
 # bad input
 
 
-@pytest.mark.parametrize(
-    ("text", "needle"),
-    [
-        (xodr(geom("<clothoid/>", 10), 10), "unknown geometry"),
-        (xodr(geom("<line/>", 10), 0), "not positive"),
-        (xodr(geom('<arc curvature="abc"/>', 10), 10), "not a number"),
-        (xodr(geom("<arc/>", 10), 10), "lacks attribute curvature"),
-        (xodr("", 10), "no geometry"),
-        (
-            xodr(
-                geom("<line/>", 10),
-                10,
-                lanes=LANES.replace('<laneSection s="0">', '<laneSection s="5">', 1).replace(
-                    "</lanes>", '<laneSection s="2"><center><lane id="0"/></center></laneSection></lanes>'
-                ),
+BAD_ROADS = [
+    (xodr(geom("<clothoid/>", 10), 10), "unknown geometry"),
+    (xodr(geom("<line/>", 10), 0), "not positive"),
+    (xodr(geom('<arc curvature="abc"/>', 10), 10), "not a number"),
+    (xodr(geom("<arc/>", 10), 10), "lacks attribute curvature"),
+    (xodr("", 10), "no geometry"),
+    (
+        xodr(
+            geom("<line/>", 10),
+            10,
+            lanes=LANES.replace('<laneSection s="0">', '<laneSection s="5">', 1).replace(
+                "</lanes>", '<laneSection s="2"><center><lane id="0"/></center></laneSection></lanes>'
             ),
-            "out of order",
         ),
-        (xodr(geom("<line/>", 10), 10, lanes=LANES.replace('id="-1"', 'id="-2"')), "not contiguous"),
-        (xodr(geom("<line/>", 10), 10, lanes="<lanes/>"), "no <laneSection>"),
-        (
-            xodr(
-                geom('<paramPoly3 aU="0" bU="1" cU="0" dU="0" aV="0" bV="0" cV="0" dV="0" pRange="xy"/>', 10),
-                10,
-            ),
-            "pRange",
+        "out of order",
+    ),
+    (xodr(geom("<line/>", 10), 10, lanes=LANES.replace('id="-1"', 'id="-2"')), "not contiguous"),
+    (xodr(geom("<line/>", 10), 10, lanes="<lanes/>"), "no <laneSection>"),
+    (
+        xodr(
+            geom('<paramPoly3 aU="0" bU="1" cU="0" dU="0" aV="0" bV="0" cV="0" dV="0" pRange="xy"/>', 10),
+            10,
         ),
-    ],
-)
+        "pRange",
+    ),
+    (xodr(geom('<arc curvature="nan"/>', 10), 10), "not finite"),
+    (xodr(geom("<line/>", -1), 10), "negative length"),
+    (xodr(geom("<line/>", 5, s=5) + geom("<line/>", 5), 10), "not sorted"),
+    (xodr(geom("<line/>", 10), 10).replace("</road>", "</road>" + _ROAD7), "duplicate road id"),
+    (xodr(geom("<line/>", 10), 10, lanes=LANES.replace('<lane id="1"', '<lane id="-3"')), "is in <left>"),
+    (
+        xodr(geom("<line/>", 10), 10, lanes=LANES.replace("</left>", _LANE1 + "</left>")),
+        "duplicate lane id 1",
+    ),
+    (xodr(geom("<line/>", 10), 10, lanes=LANES.replace('a="3.5"', 'a="wide"', 1)), "lane 1"),
+    (
+        xodr(
+            geom("<line/>", 10),
+            10,
+            lanes=LANES.replace('<width sOffset="0" a="3.5" b="0" c="0" d="0"/>', "", 1),
+        ),
+        "neither <width> nor <border>",
+    ),
+    (
+        xodr(
+            geom("<line/>", 10),
+            10,
+            extra='<elevationProfile><elevation s="5" a="0"/><elevation s="1" a="0"/></elevationProfile>',
+        ),
+        "not sorted",
+    ),
+    (
+        xodr(geom("<line/>", 10), 10).replace(
+            "<planView>",
+            '<link><successor elementType="road" elementId="3" contactPoint="middle"/></link><planView>',
+        ),
+        "contactPoint",
+    ),
+    (xodr(geom("<line/>", 10), 10, lanes=LANES.replace('<lane id="0" type="none"/>', "")), "centre lane"),
+]
+
+
+@pytest.mark.parametrize(("text", "needle"), [pytest.param(t, n, id=n) for t, n in BAD_ROADS])
 def test_bad_input_names_road_and_element(tmp_path: Path, text: str, needle: str) -> None:
     path = tmp_path / "bad.xodr"
     path.write_text(text)
@@ -289,12 +413,24 @@ def test_bad_input_names_road_and_element(tmp_path: Path, text: str, needle: str
     assert str(path) in msg and "road 7" in msg and needle in msg
 
 
-def test_bad_files(tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    ("text", "needle"),
+    [
+        ("<OpenDRIVE><header></OpenDRIVE>", "malformed XML"),
+        ("", "malformed XML"),
+        ("<Map/>", "not <OpenDRIVE>"),
+        ("<OpenDRIVE/>", "missing <header>"),
+        ('<OpenDRIVE><header revMajor="one"/></OpenDRIVE>', "not a number"),
+    ],
+)
+def test_bad_files(tmp_path: Path, text: str, needle: str) -> None:
+    path = tmp_path / "bad.xodr"
+    path.write_text(text)
+    with pytest.raises(InputError) as err:
+        OpenDriveMap.load(path)
+    assert str(path) in str(err.value) and needle in str(err.value)
     with pytest.raises(InputError, match="not found"):
         OpenDriveMap.load(tmp_path / "missing.xodr")
-    (tmp_path / "broken.xodr").write_text("<OpenDRIVE><header></OpenDRIVE>")
-    with pytest.raises(InputError, match="malformed XML"):
-        OpenDriveMap.load(tmp_path / "broken.xodr")
 
 
 # ---------------------------------------------------------------------------------------------
