@@ -180,9 +180,8 @@ def continuity(odr: Any) -> dict[str, Any]:
             if i + 1 == len(geoms):
                 continue
             nxt = geoms[i + 1]
-            (ex, ey, eh), (sx, sy, sh) = (
-                (float(v[0]) for v in g.eval(np.array([ds]))) for g, ds in ((geom, geom.length), (nxt, 0.0))
-            )
+            ex, ey, eh = (float(v[0]) for v in geom.eval(geom.length))
+            sx, sy, sh = (float(v[0]) for v in nxt.eval(0.0))
             leap = math.hypot(sx - ex, sy - ey)
             kink = abs(_wrap(sh - eh))
             note("leap", leap, road_id, i, nxt.s)
