@@ -83,7 +83,18 @@ def test_arc_lies_on_its_circle(tmp_path: Path, k: float) -> None:
         np.testing.assert_allclose([x[-1], y[-1]], [3 + length * math.cos(0.3), -2 + length * math.sin(0.3)])
 
 
-@pytest.mark.parametrize(("k0", "k1"), [(0.0, 0.02), (0.01, -0.005), (-0.004, -0.0041), (0.003, 0.003)])
+@pytest.mark.parametrize(
+    ("k0", "k1"),
+    [
+        (0.0, 0.02),
+        (0.01, -0.005),
+        (-0.004, -0.0041),
+        (0.003, 0.003),
+        (0.0, 1e-12),
+        (0.05, 0.0500000001),  # far out on its clothoid: Fresnel argument 28000, integrated instead
+        (-0.2, -0.2000001),
+    ],
+)
 def test_spiral_matches_numerical_integration(tmp_path: Path, k0: float, k1: float) -> None:
     length = 80.0
     spiral = f'<spiral curvStart="{k0}" curvEnd="{k1}"/>'

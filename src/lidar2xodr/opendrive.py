@@ -44,7 +44,9 @@ BOTTS_DOT_M = (0.1, 1.0)
 """Dot length and spacing of 'botts dots' without an explicit pattern."""
 
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(6)
-_SPIRAL_AS_ARC = 1e-9  # |dk/ds| * length^3 below this: a clothoid deviates < 1 nm from its arc
+_FRESNEL_MAX_ARG = 50.0
+"""Beyond this Fresnel argument (a clothoid piece far out on its spiral: large curvature, tiny
+curvature rate) cancellation costs micrometres, so the heading is integrated by Gauss-Legendre."""
 
 
 def _arr(s: float | np.ndarray) -> np.ndarray:
@@ -120,19 +122,22 @@ class Geometry:
     def _spiral_local(self, ds: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         k0, k1 = float(self.params["curvStart"]), float(self.params["curvEnd"])
         rate = (k1 - k0) / self.length
-        if abs(rate) * self.length**3 < _SPIRAL_AS_ARC:
-            u, v, _ = _arc_local(ds, k0 + 0.5 * rate * self.length)
-            return u, v, ds * (k0 + 0.5 * rate * ds)
-        # The clothoid is a piece of the normalised one, curvature = rate * l, starting at l0 = k0 / rate.
+        heading = ds * (k0 + 0.5 * rate * ds)
+        if rate == 0.0:
+            u, v, _ = _arc_local(ds, k0)
+            return u, v, heading
+        # A piece of the normalised clothoid (curvature = rate * l) starting at l0 = k0 / rate.
         a = math.sqrt(math.pi / abs(rate))
-        sign = math.copysign(1.0, rate)
         l0 = k0 / rate
+        if max(abs(l0), abs(l0 + self.length)) / a > _FRESNEL_MAX_ARG:
+            u, v = _integrate_heading(k0, rate, self.length, ds)
+            return u, v, heading
         s0, c0 = fresnel(l0 / a)
         s1, c1 = fresnel((l0 + ds) / a)
-        du, dv = a * (c1 - c0), sign * a * (s1 - s0)
+        du, dv = a * (c1 - c0), math.copysign(a, rate) * (s1 - s0)
         rot = -0.5 * rate * l0 * l0
         cr, sr = math.cos(rot), math.sin(rot)
-        return cr * du - sr * dv, sr * du + cr * dv, ds * (k0 + 0.5 * rate * ds)
+        return cr * du - sr * dv, sr * du + cr * dv, heading
 
     def _cubic_local(self, ds: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         table = self._table
@@ -151,6 +156,27 @@ def _poly(c: tuple[float, float, float, float], p: np.ndarray) -> np.ndarray:
 
 def _dpoly(c: tuple[float, float, float, float], p: np.ndarray) -> np.ndarray:
     return c[1] + p * (2 * c[2] + 3 * p * c[3])
+
+
+def _integrate_heading(
+    k0: float, rate: float, length: float, ds: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Local (u, v) of a curve with heading k0*l + rate*l^2/2: cumulative Gauss-Legendre on pieces
+    that turn at most 0.25 rad, then one more Gauss-Legendre piece from the last node to ds."""
+    turn = length * max(abs(k0), abs(k0 + rate * length))
+    nodes = np.linspace(0.0, length, int(min(max(1, math.ceil(turn / 0.25)), 1_000_000)) + 1)
+
+    def piece(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        half = 0.5 * (hi - lo)
+        p = (0.5 * (lo + hi))[..., None] + half[..., None] * _GL_X
+        th = p * (k0 + 0.5 * rate * p)
+        return half * (np.cos(th) @ _GL_W), half * (np.sin(th) @ _GL_W)
+
+    cu, cv = piece(nodes[:-1], nodes[1:])
+    cu, cv = np.concatenate([[0.0], np.cumsum(cu)]), np.concatenate([[0.0], np.cumsum(cv)])
+    i = np.clip(np.searchsorted(nodes, ds, side="right") - 1, 0, len(nodes) - 2)
+    du, dv = piece(nodes[i], ds)
+    return cu[i] + du, cv[i] + dv
 
 
 def _arc_local(ds: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
