@@ -1,0 +1,468 @@
+"""Extraction stage: ground plane, thresholds, outliers, accumulation, I/O, the extract command.
+
+Synthetic drives are generated here (and reused by test_datasets / test_odometry): a straight road
+with two solid edge lines and a dashed centre line, a bridge above, a car ahead, NaN rows; every
+return is sampled in the world and moved into the vehicle frame at its own time (the sweep is
+skewed exactly as a moving sensor skews it), so accumulation errors are measurable to the mm.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from scipy.spatial.transform import Rotation
+from typer.testing import CliRunner
+
+from lidar2xodr.cli import app
+from lidar2xodr.config import ExtractionConfig
+from lidar2xodr.data import GeoOrigin, GroundPlanes, MarkingCloud, Trajectory
+from lidar2xodr.datasets import open_dataset
+from lidar2xodr.errors import InputError, OutputError
+from lidar2xodr.extraction import (
+    ExtractionReport,
+    auto_threshold,
+    extract_markings,
+    fit_ground_plane,
+    otsu_threshold,
+    radius_outliers,
+)
+from lidar2xodr.markings_io import load_markings, read_ply, save_markings, sidecars
+
+SOLID_Y = (-3.5, 3.5)
+DASH_Y = 0.0
+DASH_LEN, DASH_PERIOD = 6.0, 18.0
+PAINT_HALF_WIDTH = 0.075
+BRIDGE_X = (60.0, 66.0)
+T0 = 1000.0
+
+
+@dataclass
+class Drive:
+    """A synthetic drive: vehicle-frame scans and the true trajectory (constant speed along x)."""
+
+    speed: float
+    rate_hz: float
+    sweep_s: float
+    mount: np.ndarray
+    scans: list[dict]
+
+    def pose(self, t: np.ndarray) -> np.ndarray:
+        return np.column_stack([self.speed * (t - T0), np.zeros_like(t), np.zeros_like(t)])
+
+
+def paint_mask(world: np.ndarray) -> np.ndarray:
+    x, y = world[:, 0], world[:, 1]
+    solid = np.zeros(len(world), dtype=bool)
+    for ly in SOLID_Y:
+        solid |= np.abs(y - ly) < PAINT_HALF_WIDTH
+    dash = (np.abs(y - DASH_Y) < PAINT_HALF_WIDTH) & (np.mod(x, DASH_PERIOD) < DASH_LEN)
+    return solid | dash
+
+
+def make_drive(n_scans: int = 12, speed: float = 20.0, rate_hz: float = 10.0, sweep_s: float = 0.1,
+               n_ground: int = 12000, mount_pitch: float = 0.02, seed: int = 0, posts: bool = False) -> Drive:
+    """Scans of the synthetic road; `posts` adds poles beside the road (structure for odometry)."""
+    rng = np.random.default_rng(seed)
+    mount = np.eye(4)
+    mount[:3, :3] = Rotation.from_euler("y", mount_pitch).as_matrix()
+    mount[:3, 3] = [1.2, 0.0, 1.8]
+    drive = Drive(speed, rate_hz, sweep_s, mount, [])
+    post_x = np.cumsum(rng.uniform(4.0, 11.0, 400)) - 60.0
+    post_y = np.where(rng.random(400) < 0.5, -9.0, 9.0) + rng.normal(0, 0.3, 400)
+    for k in range(n_scans):
+        start = T0 + k / rate_hz
+        centre = speed * (start + sweep_s / 2 - T0)
+        r = rng.uniform(3.0, 40.0, n_ground)
+        az = rng.uniform(-np.pi, np.pi, n_ground)
+        world = np.column_stack([centre + r * np.cos(az), r * np.sin(az), np.zeros(n_ground)])
+        inten = np.clip(rng.normal(0.1, 0.03, n_ground), 0, 1)
+        paint = paint_mask(world)
+        inten[paint] = np.clip(rng.normal(0.8, 0.05, paint.sum()), 0, 1)
+        parts = [world]
+        ints = [inten]
+        bx = rng.uniform(*BRIDGE_X, 600)
+        bridge = np.column_stack([bx, rng.uniform(-12, 12, 600), np.full(600, 6.0)])
+        bridge = bridge[np.abs(bridge[:, 0] - centre) < 40]
+        parts.append(bridge)
+        ints.append(np.full(len(bridge), 0.9))
+        car = np.column_stack([np.full(300, centre + 15.0), rng.uniform(-4.4, -2.6, 300), rng.uniform(0.4, 1.5, 300)])
+        parts.append(car)
+        ints.append(np.full(300, 0.9))
+        if posts:
+            near = np.abs(post_x - centre) < 60
+            px, py = np.repeat(post_x[near], 60), np.repeat(post_y[near], 60)
+            pz = rng.uniform(0.0, 2.5, len(px))
+            ang = rng.uniform(0, 2 * np.pi, len(px))
+            pole = np.column_stack([px + 0.1 * np.cos(ang), py + 0.1 * np.sin(ang), pz])
+            parts.append(pole)
+            ints.append(np.full(len(pole), 0.3))
+        w = np.vstack(parts)
+        inten = np.concatenate(ints)
+        azim = np.arctan2(w[:, 1], w[:, 0] - centre)
+        t = start + (azim + np.pi) / (2 * np.pi) * sweep_s
+        veh = w - drive.pose(t)
+        sensor = (veh - mount[:3, 3]) @ mount[:3, :3]
+        order = np.argsort(t, kind="stable")
+        drive.scans.append({"xyz": sensor[order], "intensity": inten[order], "t": t[order], "world": w[order]})
+    return drive
+
+
+def write_drive(drive: Drive, folder: Path, scale: float = 150.0, with_poses: bool = True,
+                nan_rows: int = 0, pose_span: tuple[float, float] | None = None) -> Path:
+    """The drive in the project's drive-directory format (meta.yaml, scans/*.pcd, poses.csv)."""
+    from pypcd4 import Encoding, PointCloud
+
+    (folder / "scans").mkdir(parents=True)
+    m = drive.mount
+    rpy = Rotation.from_matrix(m[:3, :3]).as_euler("ZYX")[::-1]
+    meta = {
+        "format": "lidar2xodr-drive", "version": 1,
+        "sensor": {"name": "synthetic", "mount": {"x": float(m[0, 3]), "y": float(m[1, 3]), "z": float(m[2, 3]),
+                                                  "roll": float(rpy[0]), "pitch": float(rpy[1]), "yaw": float(rpy[2])},
+                   "max_range_m": 100.0, "intensity_scale": scale, "rate_hz": drive.rate_hz},
+        "origin": {"lat": 48.7, "lon": 9.1, "alt": 300.0, "proj": "+proj=tmerc +lat_0=48.7 +lon_0=9.1 +k=1 "
+                   "+x_0=0 +y_0=0 +ellps=WGS84"},
+        "scans": {"dir": "scans", "format": "pcd"},
+    }
+    (folder / "meta.yaml").write_text(yaml.safe_dump(meta), encoding="utf-8")
+    for k, s in enumerate(drive.scans):
+        xyz, inten, t = s["xyz"], s["intensity"] * scale, s["t"]
+        if nan_rows:
+            xyz = xyz.copy()
+            xyz[:nan_rows, 0] = np.nan
+        cols = [xyz[:, 0], xyz[:, 1], xyz[:, 2], inten, t]
+        pc = PointCloud.from_points(cols, ("x", "y", "z", "intensity", "t"),
+                                    (np.float32, np.float32, np.float32, np.float32, np.float64))
+        pc.save(folder / "scans" / f"{k:06d}.pcd", encoding=Encoding.BINARY)
+    if with_poses:
+        lo, hi = pose_span or (T0 - 0.5, T0 + len(drive.scans) / drive.rate_hz + 0.5)
+        times = np.arange(lo, hi, 0.01)
+        pos = drive.pose(times)
+        rows = ["time,x,y,z,roll,pitch,yaw,lat,lon,alt"]
+        rows += [f"{t:.6f},{p[0]:.6f},{p[1]:.6f},{p[2]:.6f},0,0,0,,," for t, p in zip(times, pos, strict=True)]
+        (folder / "poses.csv").write_text("\n".join(rows) + "\n", encoding="utf-8")
+    return folder
+
+
+@pytest.fixture(scope="module")
+def drive() -> Drive:
+    return make_drive()
+
+
+@pytest.fixture(scope="module")
+def drive_dir(drive: Drive, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_drive(drive, tmp_path_factory.mktemp("drive") / "d", nan_rows=7)
+
+
+@pytest.fixture(scope="module")
+def extracted(drive_dir: Path) -> tuple[MarkingCloud, ExtractionReport]:
+    rep = ExtractionReport()
+    cloud = extract_markings(open_dataset(drive_dir), ExtractionConfig(), report=rep)
+    return cloud, rep
+
+
+# --- ground plane -----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("tilt_deg", [0.0, 4.0, 9.0])
+def test_ransac_finds_tilted_plane_despite_clutter(tilt_deg: float) -> None:
+    rng = np.random.default_rng(1)
+    n_true = Rotation.from_euler("xy", [np.radians(tilt_deg), np.radians(tilt_deg / 2)]).apply([0, 0, 1.0])
+    xy = rng.uniform(-30, 30, (6000, 2))
+    z = -(n_true[0] * xy[:, 0] + n_true[1] * xy[:, 1] - 0.4) / n_true[2] + rng.normal(0, 0.02, 6000)
+    clutter = np.column_stack([rng.uniform(-30, 30, (2500, 2)), rng.uniform(0.5, 3.0, 2500)])
+    wall = np.column_stack([rng.uniform(-30, 30, 1500), np.full(1500, 8.0), rng.uniform(-1, 3, 1500)])
+    pts = np.vstack([np.column_stack([xy, z]), clutter, wall])
+    plane = fit_ground_plane(pts, ExtractionConfig(), np.random.default_rng(0))
+    assert plane is not None
+    n, d = plane
+    assert np.degrees(np.arccos(np.clip(n @ n_true, -1, 1))) < 0.3
+    assert abs(d - (-0.4)) < 0.02
+    again = fit_ground_plane(pts, ExtractionConfig(), np.random.default_rng(0))
+    assert again is not None and np.array_equal(again[0], n) and again[1] == d
+
+
+def test_ransac_rejects_steep_planes_and_tiny_input() -> None:
+    rng = np.random.default_rng(2)
+    wall = np.column_stack([rng.uniform(-5, 5, 500), np.zeros(500), rng.uniform(0, 3, 500)])
+    assert fit_ground_plane(wall, ExtractionConfig(), rng) is None
+    assert fit_ground_plane(wall[:2], ExtractionConfig(), rng) is None
+
+
+# --- thresholds and outliers ------------------------------------------------------------------
+
+
+def test_auto_threshold_separates_bright_paint_from_asphalt() -> None:
+    rng = np.random.default_rng(3)
+    asphalt = np.clip(rng.normal(0.1, 0.03, 97000), 0, 1)
+    paint = np.clip(rng.normal(0.75, 0.08, 3000), 0, 1)
+    thr = auto_threshold(np.concatenate([asphalt, paint]), 3.0)
+    assert 0.2 < thr < 0.55
+    assert np.mean(paint >= thr) > 0.99
+    assert np.mean(asphalt >= thr) < 0.001
+
+
+def test_auto_threshold_stays_above_a_bright_shoulder_mode() -> None:
+    """Real roads (aiMotive night drive): asphalt ~0.2, shoulders ~0.37, paint 0.5..1."""
+    rng = np.random.default_rng(4)
+    asphalt = np.clip(rng.normal(0.18, 0.065, 67000), 0, 1)
+    shoulder = np.clip(rng.normal(0.37, 0.07, 32000), 0, 1)
+    paint = np.clip(rng.normal(0.8, 0.1, 1000), 0, 1)
+    values = np.concatenate([asphalt, shoulder, paint])
+    otsu = otsu_threshold(values)
+    thr = auto_threshold(values, 3.0)
+    assert otsu < 0.35  # Otsu alone splits asphalt from shoulder ...
+    assert thr > 0.45  # ... the robust floor keeps the shoulder out
+    assert np.mean(shoulder >= thr) < 0.1 and np.mean(paint >= thr) > 0.9
+
+
+def test_radius_outliers_matches_brute_force() -> None:
+    rng = np.random.default_rng(5)
+    pts = np.vstack([rng.normal(0, 0.2, (200, 3)), rng.uniform(-20, 20, (300, 3))])
+    keep = radius_outliers(pts, 0.5, 4)
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=2)
+    expected = ((d < 0.5).sum(axis=1) - 1) >= 4
+    assert np.array_equal(keep, expected)
+    assert keep[:200].mean() > 0.95 and keep[200:].mean() < 0.05
+    assert radius_outliers(np.zeros((0, 3)), 0.5, 4).shape == (0,)
+
+
+# --- end to end on the synthetic drive --------------------------------------------------------
+
+
+def test_marking_points_lie_on_the_painted_lines(extracted: tuple[MarkingCloud, ExtractionReport]) -> None:
+    cloud, rep = extracted
+    assert rep.odometry == "gnss" and rep.threshold_auto
+    assert rep.marking_points > 800
+    y = cloud.xyz[:, 1]
+    off = np.min(np.abs(y[:, None] - np.array([*SOLID_Y, DASH_Y])[None]), axis=1)
+    assert np.max(off) < PAINT_HALF_WIDTH + 0.01  # motion compensated: no smear across the lines
+    assert np.all(paint_mask(cloud.xyz + np.array([0, 0, 0])))
+    assert np.max(np.abs(cloud.xyz[:, 2])) < 0.01  # nothing from the bridge (6 m) or the car (>= 0.4 m)
+    on_dash = np.abs(y - DASH_Y) < 0.1
+    assert on_dash.sum() > 50 and np.all(np.mod(cloud.xyz[on_dash, 0], DASH_PERIOD) < DASH_LEN + 1e-6)
+
+
+def test_report_counts_nan_rows_and_planes(extracted: tuple[MarkingCloud, ExtractionReport], drive: Drive) -> None:
+    cloud, rep = extracted
+    assert rep.dropped_points == 7 * len(drive.scans)
+    assert rep.scans_used == len(drive.scans) and not rep.bad_scans
+    assert len(cloud.planes.times) == len(drive.scans)
+    assert np.all(cloud.planes.normals_world[:, 2] > 0.9999)
+    assert np.max(np.abs(cloud.planes.points_world[:, 2])) < 0.01
+    assert np.allclose(cloud.planes.points_world[:, 0], drive.speed * (cloud.planes.times - T0), atol=0.01)
+    assert cloud.origin.lat == 48.7 and cloud.origin.proj.startswith("+proj=tmerc")
+    assert 20.0 < rep.drive_length_m < 24.0  # 1.1 s at 20 m/s
+
+
+class ListDataset:
+    """The Dataset protocol over in-memory scans (vehicle frame), for cases no file format makes."""
+
+    def __init__(self, drive: Drive, with_times: bool) -> None:
+        from lidar2xodr.data import SensorInfo
+        from lidar2xodr.datasets.base import ReadStats
+
+        self.path = Path("memory")
+        self.sensor = SensorInfo(name="synthetic", mount=drive.mount, max_range_m=100.0)
+        self.origin = GeoOrigin()
+        self.stats = ReadStats()
+        self.drive = drive
+        self.with_times = with_times
+
+    def __len__(self) -> int:
+        return len(self.drive.scans)
+
+    def __iter__(self):
+        from lidar2xodr.data import Scan
+
+        m = self.drive.mount
+        for k, s in enumerate(self.drive.scans):
+            veh = s["xyz"] @ m[:3, :3].T + m[:3, 3]
+            yield Scan(index=k, stamp=float(np.median(s["t"])), xyz=veh, intensity=s["intensity"].astype(np.float32),
+                       times=s["t"] if self.with_times else None)
+
+    def poses(self) -> Trajectory:
+        times = np.arange(T0 - 0.5, T0 + 2.0, 0.01)
+        poses = np.tile(np.eye(4), (len(times), 1, 1))
+        poses[:, :3, 3] = self.drive.pose(times)
+        return Trajectory(times=times, poses=poses)
+
+
+def test_motion_compensation_matters(drive: Drive) -> None:
+    """Per-point times put every return where it was measured; the scan stamp alone smears the
+    dashes along the road by up to speed x half the sweep (1 m here)."""
+    cfg = ExtractionConfig(outlier_min_neighbors=0)
+    errors = {}
+    for with_times in (True, False):
+        cloud = extract_markings(ListDataset(drive, with_times), cfg)  # type: ignore[arg-type]
+        truth = np.vstack([s["world"] for s in drive.scans])
+        from scipy.spatial import cKDTree
+
+        errors[with_times], _ = cKDTree(truth).query(cloud.xyz)
+    assert errors[True].max() < 1e-3
+    assert np.percentile(errors[False], 90) > 0.1
+
+
+def test_overlapping_sweeps_are_accumulated_once(tmp_path: Path) -> None:
+    """aiMotive-like: 100 ms sweeps every 66.7 ms; each return must appear once in the cloud."""
+    d = make_drive(n_scans=6, rate_hz=15.0, sweep_s=0.1, n_ground=8000, seed=7)
+    for a, b in zip(d.scans[:-1], d.scans[1:], strict=True):  # the next sweep starts inside this one
+        overlap = a["t"] > b["t"][0]
+        assert overlap.any()
+        for key in ("xyz", "intensity", "t", "world"):
+            b[key] = np.concatenate([a[key][overlap], b[key]]) if key != "xyz" else np.vstack([a[key][overlap], b[key]])
+        order = np.argsort(b["t"], kind="stable")
+        for key in ("xyz", "intensity", "t", "world"):
+            b[key] = b[key][order]
+    cloud = extract_markings(open_dataset(write_drive(d, tmp_path / "o")),
+                             ExtractionConfig(outlier_min_neighbors=0))
+    _, counts = np.unique(np.round(cloud.xyz, 4), axis=0, return_counts=True)
+    assert counts.max() == 1
+
+
+def test_same_input_same_bytes(drive_dir: Path, tmp_path: Path) -> None:
+    digests = []
+    for name in ("a", "b"):
+        save_markings(extract_markings(open_dataset(drive_dir), ExtractionConfig()), tmp_path / name / "m.ply")
+        files = [tmp_path / name / "m.ply", *sidecars(tmp_path / name / "m.ply").values()]
+        digests.append([hashlib.sha256(f.read_bytes()).hexdigest() for f in files])
+    assert digests[0] == digests[1]
+
+
+def test_poses_not_covering_the_scans(drive: Drive, tmp_path: Path) -> None:
+    folder = write_drive(drive, tmp_path / "d", pose_span=(T0 - 0.5, T0 + 0.5))
+    with pytest.raises(InputError, match=r"scan \d+.*poses do not cover"):
+        extract_markings(open_dataset(folder), ExtractionConfig())
+
+
+def test_gnss_mode_without_poses_is_an_error(drive: Drive, tmp_path: Path) -> None:
+    folder = write_drive(drive, tmp_path / "d", with_poses=False)
+    with pytest.raises(InputError, match="no poses"):
+        extract_markings(open_dataset(folder), ExtractionConfig(odometry="gnss"))
+
+
+def test_corrupt_scans_skipped_until_too_many(drive: Drive, tmp_path: Path) -> None:
+    folder = write_drive(drive, tmp_path / "d")
+    (folder / "scans" / "000004.pcd").write_bytes(b"VERSION 0.7\nFIELDS x y\ngarbage")
+    rep = ExtractionReport()
+    extract_markings(open_dataset(folder), ExtractionConfig(), report=rep)
+    assert [Path(n).name for n, _ in rep.bad_scans] == ["000004.pcd"]
+    assert rep.scans_used == len(drive.scans) - 1
+    (folder / "scans" / "000007.pcd").write_bytes(b"")
+    with pytest.raises(InputError, match=r"2 of 12 scans unreadable.*000004.pcd"):
+        extract_markings(open_dataset(folder), ExtractionConfig(max_bad_scan_share=0.1))
+
+
+def test_fixed_threshold_when_auto_is_off(drive_dir: Path) -> None:
+    rep = ExtractionReport()
+    extract_markings(open_dataset(drive_dir), ExtractionConfig(auto_threshold=False, reflectivity_threshold=0.6),
+                     report=rep)
+    assert rep.threshold == 0.6 and not rep.threshold_auto
+
+
+def test_no_markings_is_an_input_error(drive_dir: Path) -> None:
+    with pytest.raises(InputError, match="no lane-marking points"):
+        extract_markings(open_dataset(drive_dir), ExtractionConfig(auto_threshold=False, reflectivity_threshold=1.0))
+
+
+# --- marking cloud files ----------------------------------------------------------------------
+
+
+def _cloud(n: int = 50) -> MarkingCloud:
+    rng = np.random.default_rng(9)
+    q = Rotation.from_euler("z", rng.uniform(-3, 3, 4)).as_matrix()
+    poses = np.tile(np.eye(4), (4, 1, 1))
+    poses[:, :3, :3] = q
+    poses[:, :3, 3] = rng.normal(0, 100, (4, 3))
+    return MarkingCloud(
+        xyz=rng.normal(0, 1000, (n, 3)), intensity=rng.random(n).astype(np.float32),
+        scan_index=rng.integers(0, 4, n).astype(np.int32), time=1.7e9 + rng.random(n),
+        planes=GroundPlanes(times=np.arange(4.0), normals_world=np.tile([0, 0, 1.0], (4, 1)),
+                            points_world=rng.normal(0, 10, (4, 3))),
+        trajectory=Trajectory(times=np.arange(4.0) + 0.5, poses=poses),
+        origin=GeoOrigin(lat=47.1, lon=19.2, alt=101.5, proj="+proj=tmerc +lat_0=47.1"),
+    )
+
+
+def test_markings_roundtrip_is_exact(tmp_path: Path) -> None:
+    c = _cloud()
+    save_markings(c, tmp_path / "m.ply")
+    head = (tmp_path / "m.ply").read_bytes()[:400].decode("ascii", errors="replace")
+    assert "format binary_little_endian 1.0" in head
+    for prop in ("double x", "double y", "double z", "float intensity", "int scan", "double time"):
+        assert f"property {prop}\n" in head
+    back = load_markings(tmp_path / "m.ply")
+    assert np.array_equal(back.xyz, c.xyz) and np.array_equal(back.time, c.time)
+    assert np.array_equal(back.intensity, c.intensity) and np.array_equal(back.scan_index, c.scan_index)
+    assert np.array_equal(back.planes.points_world, c.planes.points_world)
+    assert np.allclose(back.trajectory.poses, c.trajectory.poses, atol=1e-12)
+    assert back.origin == c.origin
+    assert (tmp_path / "m.planes.csv").read_text().startswith("time,px,py,pz,nx,ny,nz\n")
+    assert (tmp_path / "m.trajectory.csv").read_text().startswith("time,x,y,z,qx,qy,qz,qw\n")
+    assert json.loads((tmp_path / "m.origin.json").read_text())["lat"] == 47.1
+
+
+def test_load_markings_names_the_broken_file(tmp_path: Path) -> None:
+    save_markings(_cloud(), tmp_path / "m.ply")
+    side = sidecars(tmp_path / "m.ply")
+    side["planes"].unlink()
+    with pytest.raises(InputError, match=r"m\.planes\.csv: sidecar file missing"):
+        load_markings(tmp_path / "m.ply")
+    save_markings(_cloud(), tmp_path / "m.ply")
+    data = (tmp_path / "m.ply").read_bytes()
+    (tmp_path / "m.ply").write_bytes(data[:-10])
+    with pytest.raises(InputError, match="truncated PLY"):
+        load_markings(tmp_path / "m.ply")
+    side["trajectory"].write_text("time,x,y\n1,2,3\n")
+    save_markings(_cloud(), tmp_path / "n.ply")
+    sidecars(tmp_path / "n.ply")["trajectory"].write_text("time,x,y,z,qx,qy,qz,qw\n1,2,3,4,0,0,0,nan\n")
+    with pytest.raises(InputError, match=r"n\.trajectory\.csv: non-finite"):
+        load_markings(tmp_path / "n.ply")
+    (tmp_path / "x.ply").write_text("hello")
+    with pytest.raises(InputError, match="not a PLY"):
+        load_markings(tmp_path / "x.ply")
+
+
+def test_read_ply_ascii_and_big_endian(tmp_path: Path) -> None:
+    (tmp_path / "a.ply").write_text("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+                                    "property float z\nproperty uchar intensity\nend_header\n1 2 3 200\n4 5 6 7\n")
+    arr = read_ply(tmp_path / "a.ply")
+    assert arr["x"].tolist() == [1.0, 4.0] and arr["intensity"].tolist() == [200, 7]
+    body = np.array([(1.5, 2.5)], dtype=[("x", ">f8"), ("y", ">f8")]).tobytes()
+    (tmp_path / "b.ply").write_bytes(b"ply\nformat binary_big_endian 1.0\nelement vertex 1\nproperty double x\n"
+                                     b"property double y\nend_header\n" + body)
+    assert read_ply(tmp_path / "b.ply")["y"].tolist() == [2.5]
+
+
+def test_failed_save_leaves_nothing(tmp_path: Path) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    with pytest.raises(OutputError):
+        save_markings(_cloud(), blocker / "m.ply")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
+# --- the extract command ----------------------------------------------------------------------
+
+
+def test_extract_command_writes_the_cloud_and_a_summary(drive_dir: Path, tmp_path: Path) -> None:
+    res = CliRunner().invoke(app, ["extract", str(drive_dir), "-o", str(tmp_path / "m.ply")])
+    assert res.exit_code == 0, res.output
+    assert "marking points from 12/12 scans" in res.output and "gnss poses" in res.output
+    assert len(load_markings(tmp_path / "m.ply").xyz) > 800
+
+
+def test_extract_command_bad_input_is_one_line(tmp_path: Path) -> None:
+    (tmp_path / "empty").mkdir()
+    res = CliRunner().invoke(app, ["extract", str(tmp_path / "empty"), "-o", str(tmp_path / "m.ply")])
+    assert res.exit_code == 2
+    assert "no scans found" in res.output and "Traceback" not in res.output
+    assert not (tmp_path / "m.ply").exists()
+    res = CliRunner().invoke(app, ["extract", str(tmp_path), "-o", str(tmp_path / "m.ply"), "--odometry", "imu"])
+    assert res.exit_code == 2 and "--odometry" in res.output
