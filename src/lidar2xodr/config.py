@@ -91,6 +91,22 @@ class LanesConfig(_Section):
     max_lane_width_m: float = Field(5.0, description="ours: wider spacings are not one lane")
     station_step_m: float = Field(1.0, description="ours: spacing of the reference-line stations")
     min_section_length_m: float = Field(30.0, description="ours: shorter lane-count changes are noise")
+    max_intersect_angle_deg: float = Field(30.0, description="ours: normals ignore segments crossing at a larger "
+                                           "angle (ramps, crossing lines)")
+    z_tolerance_m: float = Field(1.5, description="ours: normals ignore lines this much higher or lower (bridges)")
+    same_line_tolerance_m: float = Field(0.5, description="ours: pieces at the same offset from a shared neighbour "
+                                         "(within this) are one superline; closer parallel lines are duplicates")
+    max_link_gap_m: float = Field(500.0, description="ours: the global lookup joins pieces of a line across "
+                                  "unobserved stretches up to this long")
+    assign_distance_m: float = Field(0.5, description="ours: marking points this close to a boundary belong to it")
+    boundary_smoothing_m: float = Field(40.0, description="ours: shortest wavelength kept in a boundary's t(s) "
+                                        "(robust Whittaker smoother)")
+    reference_smoothing_m: float = Field(60.0, description="ours: shortest wavelength kept in the reference line")
+    stable_lane_slope: float = Field(0.02, description="ours: a lane is stable where its width changes less than "
+                                     "this per metre; every lane needs a stable stretch of min_section_length_m")
+    max_taper_length_m: float = Field(300.0, description="ours: longest lane taper followed back to zero width")
+    solid_min_run_m: float = Field(20.0, description="ours: painted runs longer than this (length-weighted median) "
+                                   "make a solid line")
 
 
 class ExportConfig(_Section):

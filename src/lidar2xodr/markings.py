@@ -15,8 +15,9 @@ Decisions the paper leaves open (parameters in `MarkingsConfig`):
   also turned to agree with the previous one, so roads that bend back towards the origin still
   chain. A found cluster steers the search (Eq. 1) only when it is elongated (longer than
   `min_direction_length_m` and 3x its width) and turns the search by less than `max_turn_deg`;
-  otherwise the previous direction is kept (blobs and fragments beside a line made chains jump
-  to the neighbouring line). The centre is the box centre of the RANSAC inliers in the line's
+  otherwise the previous direction is kept. A found cluster that is neither elongated nor on the
+  line (within `segment_tolerance_m`) joins the chain but the search goes on from the previous
+  centre: blobs beside a line were stepping stones to the neighbouring line. The centre is the box centre of the RANSAC inliers in the line's
   own frame, so stray points attached to a dash do not move it.
 - SearchMark takes the unvisited centre nearest to the expected point, in the first 3 m step that
   finds one; candidate ids are given in order of the first centre's distance to the origin (the
@@ -260,19 +261,25 @@ def search_mark(clusters: Clusters, cfg: MarkingsConfig) -> list[np.ndarray]:
             continue
         visited[start] = True
         chain = [int(start)]
+        bases = [int(start)]
         v_star_prev = dirs[start]
         v = dirs[start]
         while True:
-            cur = chain[-1]
-            found, d = _next_center(tree, centers, visited, chain, v, steps, cfg)
+            base = bases[-1]
+            found, d = _next_center(tree, centers, visited, bases, v, steps, cfg)
             if found < 0:
                 break
-            between = _on_segment(tree, centers, visited, centers[cur], centers[found], cfg.segment_tolerance_m)
+            between = _on_segment(tree, centers, visited, centers[base], centers[found], cfg.segment_tolerance_m)
             for i in [*[b for b in between if b != found], found]:
                 visited[i] = True
                 chain.append(int(i))
             own = dirs[found] if float(dirs[found] @ v) >= 0 else -dirs[found]
             elongated = clusters.lengths[found] >= max(cfg.min_direction_length_m, 3.0 * clusters.widths[found])
+            rel = centers[found, :2] - centers[base, :2]
+            on_line = abs(float(rel[0] * v[1] - rel[1] * v[0])) <= cfg.segment_tolerance_m
+            if not (elongated or on_line):
+                continue
+            bases.append(int(found))
             v_star = own if elongated and float(own @ v) >= cos_turn else v
             v = cfg.gamma * v_star + (1.0 - cfg.gamma) * v_star_prev
             v /= max(float(np.linalg.norm(v)), 1e-9)
@@ -281,13 +288,13 @@ def search_mark(clusters: Clusters, cfg: MarkingsConfig) -> list[np.ndarray]:
     return chains
 
 
-def _next_center(tree: cKDTree, centers: np.ndarray, visited: np.ndarray, chain: list[int], v: np.ndarray,
+def _next_center(tree: cKDTree, centers: np.ndarray, visited: np.ndarray, bases: list[int], v: np.ndarray,
                  steps: np.ndarray, cfg: MarkingsConfig) -> tuple[int, float]:
     """The unvisited centre nearest to c + v * d in the first step d that finds one (-1 if none)."""
-    cur = centers[chain[-1]]
+    cur = centers[bases[-1]]
     slope = 0.0
-    if len(chain) >= 2:
-        prev = centers[chain[-2]]
+    if len(bases) >= 2:
+        prev = centers[bases[-2]]
         slope = (cur[2] - prev[2]) / max(float(np.linalg.norm(cur[:2] - prev[:2])), 1e-3)
     expected = cur[:2] + steps[:, None] * v
     for k, hits in enumerate(tree.query_ball_point(expected, cfg.search_radius_m)):

@@ -1,0 +1,1222 @@
+"""Lanes from markings alone (paper Alg. 2): relative lookups, superlines, boundaries, sections.
+
+Method and the decisions the paper leaves open (parameters in `LanesConfig`):
+- Relative lookups (paper): in 2D, the left and right normals at the middle of every segment
+  between consecutive centres of a candidate are intersected with the segments of all other
+  candidates (`max_normal_length_m`; segments crossing at more than `max_intersect_angle_deg`
+  or `z_tolerance_m` higher/lower are ignored). Each hit is (candidate, side, distance).
+- The paper's "distance % 3.0 m": a distance is split into whole lane steps (the quotient is the
+  lateral lane offset) and a remainder that refines the width (d / k = step + remainder / k). A
+  fixed 3.0 m step miscounts lanes of 4.0 m (3 x 4.0 / 3.0 = 4) and lanes under 3.0 m, so we keep
+  the decomposition with the step measured on the drive: the median nearest-neighbour distance
+  within [min_lane_width_m, max_lane_width_m]; `lookup_modulo_m` is only its fallback floor.
+- Global lookup (paper Fig. 4): two candidates are one line when both are hit by the normals of
+  a shared neighbour at the same lateral offset (within `same_line_tolerance_m`) and one follows
+  the other along that neighbour (gap up to `max_link_gap_m`). Candidates that see each other
+  beside them at more than the tolerance never join (union-find with conflict sets), so a
+  diverging edge line and the new line at its old place stay apart. The result: superlines.
+- Frame and reference line: a first road axis is the smoothed middle of the lookups' cross
+  sections, ordered by geodesic distance over a neighbour graph (no trajectory). Points are
+  assigned to superlines (first by candidate, then by distance to the fitted curves) and each
+  boundary t(s) is a robust (Tukey-weighted) Whittaker smoother with cutoff wavelength
+  `boundary_smoothing_m`, fitted to the points rather than to the cluster centres. The reference
+  line is the centre between the outermost kept boundaries, smoothed (`reference_smoothing_m`);
+  the frame is replaced by it twice, so the final t(s) are offsets from the written reference
+  line itself. Z comes from the marking points (per-station plane across the road at t = 0).
+- Lane structure per station: parallel lines closer than `same_line_tolerance_m` are one
+  (the weaker is dropped); spacings above `max_lane_width_m` split carriageways (the one holding
+  the ego trajectory is kept, else the one with most lines; lines of the other are ignored with a
+  warning); every adjacency of two lines must contain a stable lane stretch (width within
+  [min, max] and changing less than `stable_lane_slope`) of `min_section_length_m`, otherwise the
+  outer line (or the weaker of two inner ones) is dropped there: guard rails, gores of diverging
+  ramps and strays never make lanes. Boundaries that appear or end are followed back (forward)
+  to where the lane between them and their neighbour has zero width (`max_taper_length_m`), so an
+  added lane grows from zero. Sections are stretches with a constant boundary set; sections
+  shorter than `min_section_length_m` are merged into a neighbour.
+- Beyond the paper: solid/broken from the painted runs along s (length-weighted median run above
+  `solid_min_run_m` = solid; dash and gap are medians of runs and gaps), and the marking width
+  from the spread of the points across the fitted curve, unmixing the paint (uniform) from the
+  noise (Gaussian) with two quantile ranges.
+- Boundary ids run left to right by median offset; `Candidate.superline` is that id (-1 for
+  candidates whose line was ignored).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.linalg import solveh_banded
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components, dijkstra
+from scipy.spatial import cKDTree
+from scipy.stats import norm
+
+from lidar2xodr.config import LanesConfig
+from lidar2xodr.data import Boundary, Candidate, GeoOrigin, LaneModel, LaneSection, MarkingCloud
+from lidar2xodr.errors import InputError
+from lidar2xodr.fileio import write_text
+
+FORMAT = "lidar2xodr.lanes/1"
+_CHUNK = 20000
+
+
+# --------------------------------------------------------------------------------------------
+# relative lookups
+
+
+@dataclass
+class Segments:
+    """All segments between consecutive centres of all candidates."""
+
+    p0: np.ndarray  # (S, 3)
+    p1: np.ndarray  # (S, 3)
+    cand: np.ndarray  # (S,) candidate index (position in the list)
+    arc0: np.ndarray  # (S,) arc position of p0 along its candidate
+
+    @property
+    def length(self) -> np.ndarray:
+        return np.linalg.norm(self.p1[:, :2] - self.p0[:, :2], axis=1)
+
+
+@dataclass
+class Lookups:
+    """Relative lookups: the normal at segment `seg_a` of candidate `cand_a` hits `cand_b`.
+
+    `dist` is signed along the left normal of a (left positive); `offset_b` is the position of
+    the normal's foot relative to b (left of b positive); `pos_b` the arc position of the hit on b.
+    """
+
+    seg_a: np.ndarray
+    cand_a: np.ndarray
+    cand_b: np.ndarray
+    dist: np.ndarray
+    offset_b: np.ndarray
+    pos_b: np.ndarray
+
+
+def candidate_segments(candidates: list[Candidate], half_dash: float = 3.0) -> Segments:
+    """Segments of every candidate; a single-centre candidate is a dash-long segment along its direction."""
+    p0, p1, cand, arc0 = [], [], [], []
+    for i, c in enumerate(candidates):
+        ctr = np.asarray(c.centers, dtype=np.float64)
+        if len(ctr) == 1:
+            d = np.zeros(3)
+            d[:2] = np.asarray(c.directions, dtype=np.float64)[0] * half_dash
+            ctr = np.vstack([ctr[0] - d, ctr[0] + d])
+        seg = np.linalg.norm(np.diff(ctr[:, :2], axis=0), axis=1)
+        p0.append(ctr[:-1])
+        p1.append(ctr[1:])
+        cand.append(np.full(len(seg), i))
+        arc0.append(np.concatenate([[0.0], np.cumsum(seg)[:-1]]))
+    if not p0:
+        z = np.zeros((0, 3))
+        return Segments(z, z, np.zeros(0, dtype=np.int64), np.zeros(0))
+    return Segments(np.vstack(p0), np.vstack(p1), np.concatenate(cand), np.concatenate(arc0))
+
+
+def relative_lookups(segs: Segments, cfg: LanesConfig) -> Lookups:
+    """Paper Alg. 2: intersect the left/right normal of every segment with all other candidates."""
+    empty = np.zeros(0)
+    if len(segs.cand) == 0:
+        return Lookups(empty.astype(int), empty.astype(int), empty.astype(int), empty, empty, empty)
+    length = segs.length
+    good = length > 1e-6
+    d_xy = segs.p1[:, :2] - segs.p0[:, :2]
+    tangent = d_xy / np.maximum(length, 1e-9)[:, None]
+    normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
+    origin = 0.5 * (segs.p0 + segs.p1)
+    step = 2.0
+    n_s = np.maximum(np.ceil(length / step).astype(np.int64), 1)
+    owner = np.repeat(np.arange(len(length)), n_s + 1)
+    frac = np.concatenate([np.arange(k + 1) / k for k in n_s])
+    samples = segs.p0[owner, :2] + d_xy[owner] * frac[:, None]
+    tree = cKDTree(samples)
+    radius = cfg.max_normal_length_m + step
+    cos_max = math.cos(math.radians(cfg.max_intersect_angle_deg))
+    out: dict[str, list[np.ndarray]] = {k: [] for k in ("seg_a", "seg_b", "dist", "mu")}
+    rays = np.flatnonzero(good)
+    for a in range(0, len(rays), _CHUNK):
+        r = rays[a:a + _CHUNK]
+        hits = tree.query_ball_point(origin[r, :2], radius)
+        counts = np.array([len(h) for h in hits])
+        if counts.sum() == 0:
+            continue
+        ray = np.repeat(r, counts)
+        seg = owner[np.concatenate([np.asarray(h, dtype=np.int64) for h in hits])]
+        key = np.unique(ray * len(length) + seg)
+        ray, seg = key // len(length), key % len(length)
+        keep = (segs.cand[ray] != segs.cand[seg]) & good[seg]
+        ray, seg = ray[keep], seg[keep]
+        n, dvec = normal[ray], d_xy[seg]
+        w = segs.p0[seg, :2] - origin[ray, :2]
+        den = n[:, 0] * dvec[:, 1] - n[:, 1] * dvec[:, 0]
+        ok = np.abs(den) >= cos_max * length[seg]
+        den = np.where(ok, den, 1.0)
+        lam = (w[:, 0] * dvec[:, 1] - w[:, 1] * dvec[:, 0]) / den
+        mu = (w[:, 0] * n[:, 1] - w[:, 1] * n[:, 0]) / den
+        z_hit = segs.p0[seg, 2] + mu * (segs.p1[seg, 2] - segs.p0[seg, 2])
+        ok &= (mu >= 0) & (mu <= 1) & (np.abs(lam) <= cfg.max_normal_length_m) & (np.abs(lam) > 1e-6)
+        ok &= np.abs(z_hit - origin[ray, 2]) <= cfg.z_tolerance_m
+        for k, v in (("seg_a", ray[ok]), ("seg_b", seg[ok]), ("dist", lam[ok]), ("mu", mu[ok])):
+            out[k].append(v)
+    if not out["seg_a"]:
+        return Lookups(empty.astype(int), empty.astype(int), empty.astype(int), empty, empty, empty)
+    seg_a, seg_b = np.concatenate(out["seg_a"]), np.concatenate(out["seg_b"])
+    dist, mu = np.concatenate(out["dist"]), np.concatenate(out["mu"])
+    # one hit per (ray, side, candidate): the nearest
+    side = (dist > 0).astype(np.int64)
+    order = np.lexsort((np.abs(dist), segs.cand[seg_b], side, seg_a))
+    seg_a, seg_b, dist, mu, side = seg_a[order], seg_b[order], dist[order], mu[order], side[order]
+    first = np.ones(len(seg_a), dtype=bool)
+    first[1:] = (seg_a[1:] != seg_a[:-1]) | (side[1:] != side[:-1]) | (segs.cand[seg_b][1:] != segs.cand[seg_b][:-1])
+    seg_a, seg_b, dist, mu = seg_a[first], seg_b[first], dist[first], mu[first]
+    hit = segs.p0[seg_b, :2] + mu[:, None] * d_xy[seg_b]
+    offset_b = np.einsum("ij,ij->i", origin[seg_a, :2] - hit, normal[seg_b])
+    pos_b = segs.arc0[seg_b] + mu * length[seg_b]
+    return Lookups(seg_a, segs.cand[seg_a], segs.cand[seg_b], dist, offset_b, pos_b)
+
+
+def lane_step(lookups: Lookups, cfg: LanesConfig) -> float | None:
+    """The lane step of the paper's distance decomposition, measured on the drive (None: no lanes)."""
+    if len(lookups.dist) == 0:
+        return None
+    side = lookups.dist > 0
+    key = lookups.seg_a * 2 + side
+    order = np.lexsort((np.abs(lookups.dist), key))
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = key[order][1:] != key[order][:-1]
+    nearest = np.abs(lookups.dist[order][first])
+    lane = nearest[(nearest >= cfg.min_lane_width_m) & (nearest <= cfg.max_lane_width_m)]
+    if len(lane) < 3:
+        return None
+    return max(float(np.median(lane)), cfg.lookup_modulo_m)
+
+
+# --------------------------------------------------------------------------------------------
+# global lookup -> superlines
+
+
+class _Groups:
+    """Union-find over candidates that refuses to join groups in conflict (seen side by side)."""
+
+    def __init__(self, n: int, conflicts: list[set[int]]) -> None:
+        self.parent = list(range(n))
+        self.members = {i: {i} for i in range(n)}
+        self.conflicts = {i: set(conflicts[i]) for i in range(n)}
+
+    def find(self, i: int) -> int:
+        while self.parent[i] != i:
+            self.parent[i] = self.parent[self.parent[i]]
+            i = self.parent[i]
+        return i
+
+    def join(self, a: int, b: int) -> bool:
+        ra, rb = self.find(a), self.find(b)
+        if ra == rb or self.conflicts[ra] & self.members[rb]:
+            return False
+        keep, gone = min(ra, rb), max(ra, rb)
+        self.parent[gone] = keep
+        self.members[keep] |= self.members.pop(gone)
+        self.conflicts[keep] |= self.conflicts.pop(gone)
+        return True
+
+
+def global_lookup(n_cand: int, lookups: Lookups, step: float, cfg: LanesConfig) -> np.ndarray:
+    """Superline index per candidate: pieces at one offset from a shared neighbour, one after the other."""
+    tol = cfg.same_line_tolerance_m
+    conflicts: list[set[int]] = [set() for _ in range(n_cand)]
+    same: list[tuple[float, float, int, int]] = []
+    if len(lookups.dist):
+        pair = lookups.cand_a * n_cand + lookups.cand_b
+        uniq, inv, cnt = np.unique(pair, return_inverse=True, return_counts=True)
+        med = np.array([np.median(np.abs(lookups.dist[inv == k])) for k in range(len(uniq))]) if len(uniq) < 2000 \
+            else _group_median(np.abs(lookups.dist), inv, len(uniq))
+        for key, m, c in zip(uniq, med, cnt, strict=False):
+            a, b = int(key // n_cand), int(key % n_cand)
+            if c >= 2 and m > tol:
+                conflicts[a].add(b)
+                conflicts[b].add(a)
+            elif c >= 2:
+                same.append((0.0, float(m), a, b))
+        same += _links_via_neighbours(lookups, n_cand, tol, step, cfg)
+    groups = _Groups(n_cand, conflicts)
+    for _, _, a, b in sorted(same):
+        groups.join(a, b)
+    roots = np.array([groups.find(i) for i in range(n_cand)], dtype=np.int64)
+    _, superline = np.unique(roots, return_inverse=True)
+    return superline.ravel()
+
+
+def _group_median(values: np.ndarray, inv: np.ndarray, n: int) -> np.ndarray:
+    order = np.lexsort((values, inv))
+    counts = np.bincount(inv, minlength=n)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    return 0.5 * (values[order][starts + (counts - 1) // 2] + values[order][starts + counts // 2])
+
+
+def _links_via_neighbours(lookups: Lookups, n_cand: int, tol: float, step: float,
+                          cfg: LanesConfig) -> list[tuple[float, float, int, int]]:
+    """Paper's global lookup: X then Y along a shared neighbour B at the same offset from B."""
+    pair = lookups.cand_b * n_cand + lookups.cand_a
+    order = np.lexsort((lookups.pos_b, pair))
+    pair_s, pos, off = pair[order], lookups.pos_b[order], lookups.offset_b[order]
+    bounds = np.flatnonzero(np.diff(pair_s)) + 1
+    starts = np.concatenate([[0], bounds])
+    ends = np.concatenate([bounds, [len(pair_s)]])
+    rows = []
+    for s0, s1 in zip(starts, ends, strict=False):
+        if s1 - s0 < 2:
+            continue
+        p, o = pos[s0:s1], off[s0:s1]
+        head = np.median(o[p <= p[0] + 30.0])
+        tail = np.median(o[p >= p[-1] - 30.0])
+        if round(abs(head) / step) == 0 and round(abs(tail) / step) == 0:
+            continue
+        rows.append((int(pair_s[s0] // n_cand), int(pair_s[s0] % n_cand), float(p[0]), float(p[-1]),
+                     float(head), float(tail)))
+    links = []
+    by_b: dict[int, list[tuple[int, float, float, float, float]]] = {}
+    for b, x, p0, p1, head, tail in rows:
+        by_b.setdefault(b, []).append((x, p0, p1, head, tail))
+    for entries in by_b.values():
+        for x, _, x1, _, x_tail in entries:
+            best = None
+            for y, y0, _, y_head, _ in entries:
+                gap = y0 - x1
+                if y == x or gap < -5.0 or gap > cfg.max_link_gap_m or abs(y_head - x_tail) > tol:
+                    continue
+                cand = (max(gap, 0.0), abs(y_head - x_tail), x, y)
+                best = cand if best is None or cand < best else best
+            if best is not None:
+                links.append(best)
+    return links
+
+
+# --------------------------------------------------------------------------------------------
+# frame (road axis with stations) and smoothing
+
+
+class Frame:
+    """A polyline with stations s (arc length), unit tangents and left normals; projects points."""
+
+    def __init__(self, xy: np.ndarray, step: float) -> None:
+        seg = np.linalg.norm(np.diff(xy, axis=0), axis=1)
+        keep = np.concatenate([[True], seg > 1e-9])
+        xy = xy[keep]
+        arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
+        n = max(int(math.floor(arc[-1] / step)) + 1, 2)
+        self.s = np.arange(n) * step
+        self.xy = np.stack([np.interp(self.s, arc, xy[:, 0]), np.interp(self.s, arc, xy[:, 1])], axis=1)
+        tan = np.gradient(self.xy, axis=0)
+        self.tangent = tan / np.maximum(np.linalg.norm(tan, axis=1), 1e-12)[:, None]
+        self.normal = np.stack([-self.tangent[:, 1], self.tangent[:, 0]], axis=1)
+        self._tree = cKDTree(self.xy)
+
+    @property
+    def length(self) -> float:
+        return float(self.s[-1])
+
+    def project(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Station, signed offset (left positive) and whether the foot lies inside the frame."""
+        _, k = self._tree.query(xy)
+        best_s = np.zeros(len(xy))
+        best_t = np.zeros(len(xy))
+        best_d = np.full(len(xy), np.inf)
+        inside = np.zeros(len(xy), dtype=bool)
+        last = len(self.s) - 1
+        for j0 in (k - 1, k):
+            j0 = np.clip(j0, 0, last - 1)
+            a, b = self.xy[j0], self.xy[j0 + 1]
+            ab = b - a
+            ln2 = np.einsum("ij,ij->i", ab, ab)
+            f = np.einsum("ij,ij->i", xy - a, ab) / ln2
+            fc = np.clip(f, 0.0, 1.0)
+            foot = a + fc[:, None] * ab
+            d = np.linalg.norm(xy - foot, axis=1)
+            nrm = np.stack([-ab[:, 1], ab[:, 0]], axis=1) / np.sqrt(ln2)[:, None]
+            t = np.einsum("ij,ij->i", xy - foot, nrm)
+            better = d < best_d
+            best_d = np.where(better, d, best_d)
+            best_s = np.where(better, self.s[j0] + fc * np.sqrt(ln2), best_s)
+            best_t = np.where(better, t, best_t)
+            ins = ((f >= 0) | (j0 > 0)) & ((f <= 1) | (j0 < last - 1))
+            inside = np.where(better, ins, inside)
+        return best_s, best_t, inside
+
+    def point(self, t: np.ndarray) -> np.ndarray:
+        """World x, y at every station with lateral offset t."""
+        return self.xy + self.normal * t[:, None]
+
+
+def _whittaker(y: np.ndarray, w: np.ndarray, lam: float) -> np.ndarray:
+    """Weighted Whittaker smoother (second differences), banded solve."""
+    n = len(y)
+    if n < 4 or np.count_nonzero(w) < 2:
+        mean = float(np.sum(w * y) / max(np.sum(w), 1e-12))
+        return np.full(n, mean)
+    ab = np.zeros((3, n))
+    main = np.full(n, 6.0)
+    main[[0, -1]] = 1.0
+    main[[1, -2]] = 5.0
+    off1 = np.full(n - 1, -4.0)
+    off1[[0, -1]] = -2.0
+    ab[0, 2:] = lam
+    ab[1, 1:] = lam * off1
+    ab[2] = lam * main + w + 1e-9
+    return solveh_banded(ab, w * y)
+
+
+def _lam(cutoff_m: float, step: float) -> float:
+    """Whittaker weight whose half-power wavelength is `cutoff_m`."""
+    return (cutoff_m / (2.0 * math.pi * step)) ** 4
+
+
+def _robust_curve(k: np.ndarray, t: np.ndarray, n: int, lam: float,
+                  iters: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Robust t(s) on stations: Whittaker over the points' span with Tukey weights; NaN outside.
+
+    Returns the curve, the points' final weights and which stations are observed (3 points or
+    more, in runs of 3 stations or more).
+    """
+    out = np.full(n, np.nan)
+    w_pt = np.ones(len(t))
+    observed = np.zeros(n, dtype=bool)
+    if len(t) == 0:
+        return out, w_pt, observed
+    observed = np.bincount(k, minlength=n) >= 3
+    for a, b in _runs(observed):
+        if b - a < 3:
+            observed[a:b] = False
+    lo, hi = int(k.min()), int(k.max())
+    kk = k - lo
+    m = hi - lo + 1
+    z = np.zeros(m)
+    for _ in range(iters):
+        sw = np.bincount(kk, w_pt, m)
+        st = np.bincount(kk, w_pt * t, m)
+        z = _whittaker(np.where(sw > 0, st / np.maximum(sw, 1e-12), 0.0), sw, lam)
+        r = t - z[kk]
+        scale = max(1.4826 * float(np.median(np.abs(r))), 0.03)
+        u = r / (4.685 * scale)
+        w_pt = np.where(np.abs(u) < 1, (1 - u**2) ** 2, 0.0)
+    out[lo:hi + 1] = z
+    return out, w_pt, observed
+
+
+def _order_along(points: np.ndarray) -> np.ndarray:
+    """Geodesic position along a band of points (double sweep over a k-nearest-neighbour graph)."""
+    n = len(points)
+    if n < 3:
+        return np.arange(n, dtype=np.float64)
+    cell = np.floor(points / 2.0).astype(np.int64)
+    _, rep, inv = np.unique(cell, axis=0, return_index=True, return_inverse=True)
+    inv = inv.ravel()
+    pts = points[rep]
+    m = len(pts)
+    k = min(9, m)
+    tree = cKDTree(pts)
+    d, j = tree.query(pts, k)
+    rows = np.repeat(np.arange(m), k - 1)
+    graph = coo_matrix((d[:, 1:].ravel() + 1e-6, (rows, j[:, 1:].ravel())), shape=(m, m)).tocsr()
+    ncomp, comp = connected_components(graph, directed=False)
+    if ncomp > 1:
+        extra_r, extra_c, extra_w = [], [], []
+        sizes = np.bincount(comp)
+        main = int(np.argmax(sizes))
+        joined = comp == main
+        while not joined.all():
+            t_in = cKDTree(pts[joined])
+            idx_out = np.flatnonzero(~joined)
+            dd, jj = t_in.query(pts[idx_out])
+            q = int(np.argmin(dd))
+            a, b = int(idx_out[q]), int(np.flatnonzero(joined)[jj[q]])
+            extra_r.append(a)
+            extra_c.append(b)
+            extra_w.append(float(dd[q]) + 1e-6)
+            joined |= comp == comp[a]
+        graph = graph + coo_matrix((extra_w, (extra_r, extra_c)), shape=(m, m)).tocsr()
+    d0 = dijkstra(graph, directed=False, indices=0)
+    a = int(np.argmax(np.where(np.isfinite(d0), d0, -1)))
+    da = dijkstra(graph, directed=False, indices=a)
+    b = int(np.argmax(np.where(np.isfinite(da), da, -1)))
+    if np.linalg.norm(pts[b, :2]) < np.linalg.norm(pts[a, :2]):
+        da = dijkstra(graph, directed=False, indices=b)
+    return da[inv]
+
+
+def _first_frame(segs: Segments, lookups: Lookups, cfg: LanesConfig) -> Frame:
+    """Road axis from the middle of each normal's cross-section, ordered and smoothed."""
+    origin = 0.5 * (segs.p0 + segs.p1)
+    n_seg = len(origin)
+    lo = np.zeros(n_seg)
+    hi = np.zeros(n_seg)
+    if len(lookups.dist):
+        np.minimum.at(lo, lookups.seg_a, lookups.dist)
+        np.maximum.at(hi, lookups.seg_a, lookups.dist)
+    d = segs.p1[:, :2] - segs.p0[:, :2]
+    tangent = d / np.maximum(np.linalg.norm(d, axis=1), 1e-9)[:, None]
+    normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
+    mid = origin.copy()
+    mid[:, :2] += normal * (0.5 * (lo + hi))[:, None]
+    u = _order_along(mid * np.array([1.0, 1.0, 3.0]))
+    bins = np.floor(u / 10.0).astype(np.int64)
+    uniq, inv = np.unique(bins, return_inverse=True)
+    inv = inv.ravel()
+    cnt = np.bincount(inv)
+    xy = np.stack([_group_median(mid[:, k], inv, len(uniq)) for k in range(2)], axis=1)
+    uu = np.bincount(inv, u) / cnt
+    fine = np.arange(uu[0], uu[-1] + 1e-9, 2.0) if uu[-1] > uu[0] else uu
+    lam = _lam(2.0 * cfg.reference_smoothing_m, 2.0)
+    path = np.stack([_whittaker(np.interp(fine, uu, xy[:, k]), np.ones(len(fine)), lam) for k in range(2)], axis=1)
+    if len(path) < 3:
+        raise InputError("marking cloud", "the markings cover less than a few metres of road")
+    ext = np.arange(2.0, 40.0 + 1e-9, 2.0)[:, None]
+    head = path[0] - ext[::-1] * (path[1] - path[0]) / np.linalg.norm(path[1] - path[0])
+    tail = path[-1] + ext * (path[-1] - path[-2]) / np.linalg.norm(path[-1] - path[-2])
+    path = np.vstack([head, path, tail])
+    return Frame(path, cfg.station_step_m)
+
+
+# --------------------------------------------------------------------------------------------
+# lane structure per station
+
+
+@dataclass
+class _Structure:
+    on: np.ndarray  # (B, M) boundary kept at station
+    t: np.ndarray  # (B, M) offsets including taper extensions
+    notes: list[str]
+
+
+def _lane_structure(t_fit: np.ndarray, support: np.ndarray, t_ego: np.ndarray | None, step: float,
+                    w_lane: float, cfg: LanesConfig) -> _Structure:
+    """Which boundaries form the carriageway at each station, with tapers followed to zero width."""
+    b_n, m = t_fit.shape
+    t = t_fit.copy()
+    on = np.isfinite(t)
+    notes: list[str] = []
+    tol = cfg.same_line_tolerance_m
+    rank = np.argsort(np.argsort(-support, kind="stable"), kind="stable")
+    min_run = max(int(round(cfg.min_section_length_m / step)), 1)
+    _drop_duplicates(t, on, rank, tol, min_run)
+    for _ in range(3):
+        on = _choose_carriageway(t, on, t_ego, cfg)
+        on, _ = _check_adjacency(t, on, rank, step, cfg)
+        on = _clean_runs(on, min_run)
+    t, on = _follow_tapers(t, on, step, w_lane, cfg)
+    t = np.where(on, t, np.nan)
+    return _Structure(on, t, notes)
+
+
+def _drop_duplicates(t: np.ndarray, on: np.ndarray, rank: np.ndarray, tol: float, min_run: int) -> None:
+    """Where two lines run closer than `tol`, keep one: the one that goes on where the other ends
+    (a lane closing onto its neighbour), else the one with more support."""
+    b_n, m = t.shape
+    finite = np.isfinite(t)
+    for i in range(b_n):
+        for j in range(i + 1, b_n):
+            close = on[i] & on[j] & (np.abs(t[i] - t[j]) < tol)
+            for c0, c1 in _runs(close):
+                bi, ai = _finite_reach(finite[i], c0, c1)
+                bj, aj = _finite_reach(finite[j], c0, c1)
+                ends_i = (ai < min_run <= aj) or (bi < min_run <= bj)
+                ends_j = (aj < min_run <= ai) or (bj < min_run <= bi)
+                if ends_i != ends_j:
+                    victim = i if ends_i else j
+                else:
+                    victim = i if rank[i] > rank[j] else j
+                on[victim, c0:c1] = False
+
+
+def _finite_reach(finite: np.ndarray, c0: int, c1: int) -> tuple[int, int]:
+    """How far a line goes on (measured) before station c0 and after station c1."""
+    gaps_before = np.flatnonzero(~finite[:c0])
+    gaps_after = np.flatnonzero(~finite[c1:])
+    before = c0 - 1 - (gaps_before[-1] if len(gaps_before) else -1)
+    after = gaps_after[0] if len(gaps_after) else len(finite) - c1
+    return int(before), int(after)
+
+
+def _sorted_columns(t: np.ndarray, on: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per station: boundary indices ordered left to right (present first) and their offsets."""
+    key = np.where(on, -t, np.inf)
+    order = np.argsort(key, axis=0, kind="stable")
+    return order, np.take_along_axis(np.where(on, t, np.nan), order, axis=0)
+
+
+def _choose_carriageway(t: np.ndarray, on: np.ndarray, t_ego: np.ndarray | None, cfg: LanesConfig) -> np.ndarray:
+    """Split at spacings above the widest lane; keep the group with the ego (else the most lines)."""
+    b_n, m = t.shape
+    order, ts = _sorted_columns(t, on)
+    gap = ts[:-1] - ts[1:]
+    split = np.vstack([np.zeros((1, m), dtype=bool), ~(gap <= cfg.max_lane_width_m)])
+    group = np.cumsum(split, axis=0)
+    present = np.isfinite(ts)
+    n_groups = group.max() + 1
+    sizes = np.zeros((n_groups, m))
+    for g in range(n_groups):
+        sizes[g] = np.sum(present & (group == g), axis=0)
+    choice = np.argmax(sizes, axis=0)
+    if t_ego is not None:
+        for g in range(n_groups):
+            sel = present & (group == g)
+            top = np.max(np.where(sel, ts, -np.inf), axis=0)
+            bot = np.min(np.where(sel, ts, np.inf), axis=0)
+            holds = (t_ego <= top + 0.5) & (t_ego >= bot - 0.5) & np.isfinite(t_ego)
+            choice = np.where(holds, g, choice)
+    keep_sorted = present & (group == choice[None, :])
+    keep = np.zeros_like(on)
+    np.put_along_axis(keep, order, keep_sorted, axis=0)
+    return keep & on
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """[start, end) of every run of True."""
+    d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1), strict=False))
+
+
+def _check_adjacency(t: np.ndarray, on: np.ndarray, rank: np.ndarray, step: float,
+                     cfg: LanesConfig) -> tuple[np.ndarray, list[tuple[int, int, int]]]:
+    """Every pair of neighbouring lines must hold a stable lane somewhere along their adjacency."""
+    b_n, m = t.shape
+    order, ts = _sorted_columns(t, on)
+    need = max(int(round(cfg.min_section_length_m / step)), 1)
+    upper, lower = order[:-1], order[1:]
+    valid = np.isfinite(ts[:-1]) & np.isfinite(ts[1:])
+    width = ts[:-1] - ts[1:]
+    key = np.where(valid, upper * b_n + lower, -1)
+    stable_len: dict[int, int] = {}
+    for key_value in np.unique(key[valid]):
+        at = (key == key_value).any(axis=0)
+        w = np.where(key == key_value, width, 0.0).sum(axis=0)
+        slope = np.abs(np.gradient(w)) / step
+        good = at & (w >= cfg.min_lane_width_m) & (w <= cfg.max_lane_width_m) & (slope < cfg.stable_lane_slope)
+        stable_len[int(key_value)] = max((e - s for s, e in _runs(good)), default=0)
+    count = on.sum(axis=0)
+    on = on.copy()
+    dropped: list[tuple[int, int, int]] = []
+    for key_value, length in sorted(stable_len.items()):
+        if length >= need:
+            continue
+        a, b = divmod(key_value, b_n)
+        rows, cols = np.nonzero(key == key_value)
+        first_row = np.all(rows == 0)
+        last_row = np.all(count[cols] == rows + 2)
+        if first_row and not last_row:
+            victim = a
+        elif last_row and not first_row:
+            victim = b
+        else:
+            victim = a if rank[a] > rank[b] else b
+        on[victim, cols] = False
+        dropped.append((int(victim), int(cols.min()), int(cols.max())))
+    return on, dropped
+
+
+def _clean_runs(on: np.ndarray, min_run: int) -> np.ndarray:
+    """Drop presence runs shorter than `min_run` stations."""
+    out = on.copy()
+    for b in range(len(on)):
+        for s, e in _runs(on[b]):
+            if e - s < min_run:
+                out[b, s:e] = False
+    return out
+
+
+def _follow_tapers(t: np.ndarray, on: np.ndarray, step: float, w_lane: float,
+                   cfg: LanesConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Extend boundaries that appear or end back (forward) to where their new lane has zero width."""
+    t = t.copy()
+    on = on.copy()
+    b_n, m = t.shape
+    reach = int(round(cfg.max_taper_length_m / step))
+    probe = max(int(round(40.0 / step)), 2)
+    road = np.flatnonzero(on.sum(axis=0) >= 2)
+    if len(road) == 0:
+        return t, on
+    for _ in range(3):
+        before = on.sum()
+        for b in range(b_n):
+            for s, e in _runs(on[b]):
+                for start, edge, inward in ((s, s, 1), (e - 1, e, -1)):
+                    if (inward == 1 and edge == 0) or (inward == -1 and edge == m):
+                        continue
+                    if not _extend(t, on, b, start, inward, probe, reach, w_lane):
+                        end = road[0] if inward == 1 else road[-1]
+                        if abs(start - end) <= reach:
+                            _hold_to(t, on, b, start, end)
+        if on.sum() == before:
+            break
+    return t, on
+
+
+def _hold_to(t: np.ndarray, on: np.ndarray, b: int, start: int, end: int) -> None:
+    """Carry boundary b from `start` to the road's end `end` at a constant offset from its nearest neighbour.
+
+    Lines start late or end early near the ends of a drive because they were not yet (or no
+    longer) observed, not because the lane count changes.
+    """
+    others = [j for j in range(len(t)) if j != b and on[j, start]]
+    if not others:
+        return
+    nb = min(others, key=lambda j: abs(t[j, start] - t[b, start]))
+    offset = t[b, start] - t[nb, start]
+    span = np.arange(end, start) if end < start else np.arange(start + 1, end + 1)
+    span = span[on[nb, span] & ~on[b, span]]
+    t[b, span] = t[nb, span] + offset
+    on[b, span] = True
+
+
+def _extend(t: np.ndarray, on: np.ndarray, b: int, start: int, inward: int, probe: int, reach: int,
+            w_lane: float) -> bool:
+    """Follow boundary b from station `start` outwards (against `inward`) while its new lane closes."""
+    window = np.arange(start, start + inward * probe, inward)
+    window = window[(window >= 0) & (window < t.shape[1])]
+    tb = t[b, start]
+    others = [j for j in range(len(t)) if j != b and on[j, start]]
+    left = [j for j in others if t[j, start] > tb]
+    right = [j for j in others if t[j, start] < tb]
+    nb_left = min(left, key=lambda j: t[j, start] - tb) if left else None
+    nb_right = max(right, key=lambda j: t[j, start] - tb) if right else None
+    best = None
+    for grow, other in ((nb_left, nb_right), (nb_right, nb_left)):
+        if grow is None:
+            continue
+        w = np.abs(t[grow, window] - t[b, window])
+        ok = np.isfinite(w) & on[grow, window] & on[b, window]
+        if ok.sum() < 2:
+            continue
+        x = (window[ok] - start) * inward
+        slope = np.polyfit(x, w[ok], 1)[0]
+        w0 = abs(t[grow, start] - tb)
+        if slope <= 1e-4 or w0 > 0.8 * w_lane:
+            continue
+        if best is None or w0 < best[0]:
+            best = (w0, grow, other, slope)
+    if best is None:
+        return False
+    w0, grow, other, slope = best
+    sign = 1.0 if t[grow, start] > tb else -1.0
+    previous = w0
+    for i in range(1, reach + 1):
+        k = start - inward * i
+        if k < 0 or k >= t.shape[1] or on[b, k] or not on[grow, k]:
+            return True
+        if other is not None and on[other, k]:
+            tk = t[other, k] + (tb - t[other, start])
+        elif other is None:
+            tk = t[grow, k] - sign * max(w0 - slope * i, 0.0)
+        else:
+            return True
+        width = sign * (t[grow, k] - tk)
+        if width <= 0.05 or (width < 0.5 and width >= previous):
+            t[b, k] = t[grow, k]
+            on[b, k] = True
+            return True
+        previous = width
+        t[b, k] = tk
+        on[b, k] = True
+    return True
+
+
+def _sections(on: np.ndarray, t: np.ndarray, s: np.ndarray,
+              min_len: float) -> tuple[list[LaneSection], np.ndarray, np.ndarray]:
+    """Runs of a constant boundary set (left to right); short runs and holes join a neighbour.
+
+    A merged stretch takes the neighbour's boundaries; their offsets are interpolated (held at
+    the ends) where they were not measured, so sections are contiguous and every listed boundary
+    has offsets in its section. Returns the sections and the updated presence and offsets.
+    """
+    on, t = on.copy(), t.copy()
+    m = on.shape[1]
+    codes = [tuple(np.flatnonzero(on[:, k])) if on[:, k].sum() >= 2 else () for k in range(m)]
+    runs: list[list] = []
+    for k, c in enumerate(codes):
+        if runs and runs[-1][2] == c:
+            runs[-1][1] = k
+        else:
+            runs.append([k, k, c])
+
+    def length(r: list) -> float:
+        return float(s[min(r[1] + 1, m - 1)] - s[r[0]]) if r[2] else -1.0
+
+    while len(runs) > 1:
+        i = min(range(len(runs)), key=lambda j: (length(runs[j]), j))
+        if runs[i][2] and length(runs[i]) >= min_len:
+            break
+        nbs = [j for j in (i - 1, i + 1) if 0 <= j < len(runs) and runs[j][2]]
+        if not nbs:
+            break
+        j = max(nbs, key=lambda q: (length(runs[q]), -q))
+        a, b = runs[i][0], runs[i][1]
+        on[:, a:b + 1] = False
+        for x in runs[j][2]:
+            on[x, a:b + 1] = True
+            fin = np.flatnonzero(np.isfinite(t[x]))
+            gap = np.arange(a, b + 1)
+            miss = gap[~np.isfinite(t[x, gap])]
+            if len(miss):
+                t[x, miss] = np.interp(miss, fin, t[x, fin])
+        runs[j] = [min(a, runs[j][0]), max(b, runs[j][1]), runs[j][2]]
+        runs.pop(i)
+        merged: list[list] = []
+        for r in runs:
+            if merged and merged[-1][2] == r[2]:
+                merged[-1][1] = r[1]
+            else:
+                merged.append(r)
+        runs = merged
+    runs = [r for r in runs if r[2]]
+    out = []
+    for k, (a, b, c) in enumerate(runs):
+        ids = sorted(c, key=lambda x: -float(np.nanmedian(t[x, a:b + 1])))
+        s_end = s[b + 1] if k + 1 < len(runs) else s[b]
+        out.append(LaneSection(float(s[a]), float(s_end), [int(i) for i in ids]))
+    return out, on, np.where(on, t, np.nan)
+
+
+# --------------------------------------------------------------------------------------------
+# marking type and width
+
+
+def _mark_pattern(s_pts: np.ndarray, cfg: LanesConfig) -> tuple[str, float | None, float | None]:
+    """Solid or broken from the painted runs along s; dash and gap lengths for broken lines."""
+    if len(s_pts) < 10:
+        return "solid", None, None
+    b = 0.25
+    k = np.floor((s_pts - s_pts.min()) / b).astype(np.int64)
+    occ = np.zeros(k.max() + 1, dtype=bool)
+    occ[k] = True
+    runs = _runs(occ)
+    merged: list[list[int]] = []
+    for s0, s1 in runs:
+        if merged and (s0 - merged[-1][1]) * b < 1.0:
+            merged[-1][1] = s1
+        else:
+            merged.append([s0, s1])
+    lengths = np.array([(e - s) * b for s, e in merged])
+    order = np.argsort(lengths)
+    cum = np.cumsum(lengths[order])
+    weighted_median = lengths[order][np.searchsorted(cum, cum[-1] / 2.0)]
+    if weighted_median > cfg.solid_min_run_m:
+        return "solid", None, None
+    dashes = lengths[(lengths >= 1.0) & (lengths <= cfg.solid_min_run_m)]
+    gaps = np.array([(merged[i + 1][0] - merged[i][1]) * b for i in range(len(merged) - 1)])
+    dash = float(np.median(dashes)) if len(dashes) else None
+    gap = float(np.median(gaps)) if len(gaps) else None
+    return "broken", dash, gap
+
+
+def _spread_table() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For paint of width 1 blurred by noise sigma = k: (q90 - q10) / (q75 - q25) and (q90 - q10)."""
+    ks = np.linspace(0.0, 3.0, 61)
+    x = np.linspace(-8.0, 8.0, 8001)
+    ratio, spread = [], []
+    for k in ks:
+        if k == 0:
+            cdf = np.clip(x + 0.5, 0.0, 1.0)
+        else:
+            a, b = (x + 0.5) / k, (x - 0.5) / k
+            cdf = (x + 0.5) * norm.cdf(a) - (x - 0.5) * norm.cdf(b) + k * (norm.pdf(a) - norm.pdf(b))
+        q = np.interp([0.1, 0.25, 0.75, 0.9], cdf, x)
+        ratio.append((q[3] - q[0]) / (q[2] - q[1]))
+        spread.append(q[3] - q[0])
+    return ks, np.array(ratio), np.array(spread)
+
+
+_SPREAD: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+
+def marking_width(residuals: np.ndarray) -> float | None:
+    """Paint width from lateral residuals: uniform paint convolved with Gaussian noise, by quantiles."""
+    global _SPREAD
+    if len(residuals) < 30:
+        return None
+    if _SPREAD is None:
+        _SPREAD = _spread_table()
+    ks, ratio, spread = _SPREAD
+    q10, q25, q75, q90 = np.quantile(residuals, [0.1, 0.25, 0.75, 0.9])
+    if q75 - q25 <= 0:
+        return None
+    r = float(np.clip((q90 - q10) / (q75 - q25), ratio[0], ratio[-1]))
+    k = float(np.interp(r, ratio, ks))
+    return float((q90 - q10) / np.interp(k, ks, spread))
+
+
+# --------------------------------------------------------------------------------------------
+# the stage
+
+
+def build_lane_model(cloud: MarkingCloud, candidates: list[Candidate], cfg: LanesConfig,
+                     where: str = "marking cloud") -> LaneModel:
+    """Paper Alg. 2 and beyond: superlines, boundaries t(s), sections and the reference line."""
+    xyz = np.asarray(cloud.xyz, dtype=np.float64)
+    if len(xyz) == 0:
+        raise InputError(where, "no marking points: nothing to build lanes from")
+    if not candidates:
+        raise InputError(where, "no candidate lines were found in the markings")
+    step = cfg.station_step_m
+    segs = candidate_segments(candidates)
+    lookups = relative_lookups(segs, cfg)
+    w_lane = lane_step(lookups, cfg)
+    if w_lane is None:
+        raise InputError(where, "found no two parallel marking lines "
+                                f"{cfg.min_lane_width_m:g}-{cfg.max_lane_width_m:g} m apart: a single line "
+                                "(or none) cannot give lanes")
+    superline = global_lookup(len(candidates), lookups, w_lane, cfg)
+    frame = _first_frame(segs, lookups, cfg)
+    warnings: list[str] = []
+    label = _label_by_candidates(xyz[:, :2], candidates, superline, cfg)
+    n_sl = int(superline.max()) + 1
+    ego = cloud.trajectory.positions[:, :2] if len(cloud.trajectory) else None
+    lam = _lam(cfg.boundary_smoothing_m, step)
+    structure = fit = None
+    for it in range(3):
+        k_pt, t_pt, inside = _stations(frame, xyz[:, :2])
+        fit = _fit_boundaries(k_pt, t_pt, label, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)))
+        short = np.isfinite(fit.t).sum(axis=1) * step < cfg.min_section_length_m
+        n_short = int(np.sum(short & np.isfinite(fit.t).any(axis=1)))
+        fit.t[short] = np.nan
+        t_ego = _ego_offsets(frame, ego)
+        structure = _lane_structure(fit.t, fit.support, t_ego, step, w_lane, cfg)
+        if not np.any(structure.on.sum(axis=0) >= 2):
+            raise InputError(where, "no stretch of road has two marking lines a lane apart")
+        curves = np.where(np.isfinite(structure.t), structure.t, fit.t)
+        curves = _hold_ends(curves, int(round(30.0 / step)), cfg.same_line_tolerance_m)
+        label = _label_by_distance(k_pt, t_pt, inside, curves, cfg)
+        if it < 2:
+            frame = _recentre(frame, structure, cfg)
+    assert structure is not None and fit is not None
+    if n_short:
+        warnings.append(f"ignored {n_short} marking pieces shorter than {cfg.min_section_length_m:g} m "
+                        "(stray returns, blobs, arrows)")
+    return _assemble(cloud, candidates, superline, frame, fit, structure, label, k_pt, t_pt, inside,
+                     xyz, warnings, cfg)
+
+
+@dataclass
+class _Fit:
+    t: np.ndarray  # (B, M)
+    support: np.ndarray  # (B,) points used
+
+
+def _stations(frame: Frame, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    s, t, inside = frame.project(xy)
+    k = np.clip(np.rint(s / (frame.s[1] - frame.s[0])).astype(np.int64), 0, len(frame.s) - 1)
+    return k, t, inside
+
+
+def _fit_boundaries(k: np.ndarray, t: np.ndarray, label: np.ndarray, inside: np.ndarray, n_sl: int, m: int,
+                    lam: float, gap: int) -> _Fit:
+    out = np.full((n_sl, m), np.nan)
+    support = np.zeros(n_sl)
+    use = (label >= 0) & inside
+    order = np.argsort(label[use], kind="stable")
+    lab, kk, tt = label[use][order], k[use][order], t[use][order]
+    bounds = np.searchsorted(lab, np.arange(n_sl + 1))
+    observed = np.zeros((n_sl, m), dtype=bool)
+    for b in range(n_sl):
+        sl = slice(bounds[b], bounds[b + 1])
+        if bounds[b + 1] - bounds[b] < 10:
+            continue
+        out[b], w, observed[b] = _robust_curve(kk[sl], tt[sl], m, lam)
+        support[b] = float(w.sum())
+    _bridge_gaps(out, observed, gap)
+    return _Fit(out, support)
+
+
+def _bridge_gaps(t: np.ndarray, observed: np.ndarray, gap: int) -> None:
+    """Across unobserved stretches longer than `gap` stations a line keeps its lane width to the
+    neighbour best observed there (interpolated between the ends), instead of a straight chord in
+    the frame, which bends wherever the frame does."""
+    for b in range(len(t)):
+        fin = np.flatnonzero(np.isfinite(t[b]))
+        if len(fin) == 0:
+            continue
+        inner = np.zeros(t.shape[1], dtype=bool)
+        inner[fin[0]:fin[-1] + 1] = True
+        for g0, g1 in _runs(inner & ~observed[b]):
+            if g1 - g0 < gap or g0 == 0 or g1 >= t.shape[1]:
+                continue
+            best, best_key = None, None
+            for nb in range(len(t)):
+                if nb == b or not np.all(np.isfinite(t[nb, g0 - 1:g1 + 1])):
+                    continue
+                key = (float(observed[nb, g0:g1].mean()), -abs(float(t[nb, g0] - t[b, g0])))
+                if key[0] >= 0.25 and (best_key is None or key > best_key):
+                    best, best_key = nb, key
+            if best is None:
+                continue
+            w0, w1 = t[b, g0 - 1] - t[best, g0 - 1], t[b, g1] - t[best, g1]
+            f = (np.arange(g0, g1) - (g0 - 1)) / (g1 - g0 + 1)
+            t[b, g0:g1] = t[best, g0:g1] + w0 + (w1 - w0) * f
+
+
+def _ego_offsets(frame: Frame, ego: np.ndarray | None) -> np.ndarray | None:
+    if ego is None or len(ego) < 2:
+        return None
+    s, t, inside = frame.project(ego)
+    if inside.sum() < 2:
+        return None
+    order = np.argsort(s[inside])
+    return np.interp(frame.s, s[inside][order], t[inside][order], left=np.nan, right=np.nan)
+
+
+def _label_by_candidates(xy: np.ndarray, candidates: list[Candidate], superline: np.ndarray,
+                         cfg: LanesConfig) -> np.ndarray:
+    """Superline of every point through the nearest candidate polyline (dash ends included)."""
+    pts, owner = [], []
+    for i, c in enumerate(candidates):
+        ctr = np.asarray(c.centers, dtype=np.float64)[:, :2]
+        dirs = np.asarray(c.directions, dtype=np.float64)
+        ext = np.vstack([ctr[0] - 3.0 * dirs[0], ctr, ctr[-1] + 3.0 * dirs[-1]])
+        seg = np.diff(ext, axis=0)
+        n = np.maximum(np.ceil(np.linalg.norm(seg, axis=1) / 0.25).astype(np.int64), 1)
+        f = np.concatenate([np.arange(k) / k for k in n])
+        base = np.repeat(np.arange(len(seg)), n)
+        pts.append(ext[base] + seg[base] * f[:, None])
+        owner.append(np.full(len(f), superline[i]))
+    samples, owner_arr = np.vstack(pts), np.concatenate(owner)
+    d, j = cKDTree(samples).query(xy, distance_upper_bound=cfg.assign_distance_m)
+    ok = np.isfinite(d)
+    return np.where(ok, owner_arr[np.minimum(j, len(owner_arr) - 1)], -1)
+
+
+def _hold_ends(curves: np.ndarray, reach: int, tol: float) -> np.ndarray:
+    """Curves held at their first and last value for up to `reach` stations, so lines can grow while
+    labelling, but never onto another line (a lane closing onto its neighbour must not take it over)."""
+    out = curves.copy()
+    m = curves.shape[1]
+    for b, c in enumerate(curves):
+        fin = np.flatnonzero(np.isfinite(c))
+        if len(fin) == 0:
+            continue
+        others = np.delete(curves, b, axis=0)
+        for end, direction in ((fin[0], -1), (fin[-1], 1)):
+            for i in range(1, reach + 1):
+                k = end + direction * i
+                if k < 0 or k >= m or np.any(np.abs(others[:, k] - c[end]) < tol):
+                    break
+                out[b, k] = c[end]
+    return out
+
+
+def _label_by_distance(k: np.ndarray, t: np.ndarray, inside: np.ndarray, curves: np.ndarray,
+                       cfg: LanesConfig) -> np.ndarray:
+    """Superline of every point: the nearest fitted curve at its station, within assign_distance_m."""
+    label = np.full(len(t), -1, dtype=np.int64)
+    for a in range(0, len(t), 200000):
+        sl = slice(a, a + 200000)
+        d = np.abs(curves[:, k[sl]] - t[sl][None, :])
+        d = np.where(np.isfinite(d), d, np.inf)
+        best = np.argmin(d, axis=0)
+        ok = (d[best, np.arange(len(best))] <= cfg.assign_distance_m) & inside[sl]
+        label[sl] = np.where(ok, best, -1)
+    return label
+
+
+def _centre_offsets(structure: _Structure, cfg: LanesConfig, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """Offset of the road centre at each station (NaN-free, smoothed) and where it is measured."""
+    valid = structure.on.sum(axis=0) >= 2
+    top = np.max(np.where(structure.on, structure.t, -np.inf), axis=0)
+    bottom = np.min(np.where(structure.on, structure.t, np.inf), axis=0)
+    centre = np.where(valid, 0.5 * (np.where(valid, top, 0.0) + np.where(valid, bottom, 0.0)), 0.0)
+    w = valid.astype(np.float64)
+    if w.sum() == 0:
+        return np.zeros(len(centre)), valid
+    lam = _lam(cfg.reference_smoothing_m, step)
+    sm = _whittaker(centre, w, lam)
+    return sm, valid
+
+
+def _recentre(frame: Frame, structure: _Structure, cfg: LanesConfig) -> Frame:
+    """The road centre as the next frame (trimmed to where the road is measured)."""
+    centre, valid = _centre_offsets(structure, cfg, frame.s[1] - frame.s[0])
+    idx = np.flatnonzero(valid)
+    margin = int(round(20.0 / (frame.s[1] - frame.s[0])))
+    a, b = max(idx[0] - margin, 0), min(idx[-1] + margin + 1, len(frame.s))
+    return Frame(frame.point(centre)[a:b], frame.s[1] - frame.s[0])
+
+
+def _reference_z(k: np.ndarray, t: np.ndarray, z: np.ndarray, use: np.ndarray, m: int, step: float) -> np.ndarray:
+    """Height of the road at t = 0: a plane across the road per 5 m window, smoothed along s."""
+    k, t, z = k[use], t[use], z[use]
+    if len(z) == 0:
+        return np.zeros(m)
+    win = max(int(round(5.0 / step)), 1)
+    g = k // win
+    n = m // win + 1
+    s1 = np.bincount(g, minlength=n).astype(np.float64)
+    st, stt = np.bincount(g, t, n), np.bincount(g, t * t, n)
+    sz, stz = np.bincount(g, z, n), np.bincount(g, t * z, n)
+    den = s1 * stt - st**2
+    spread_ok = den > 1e-6 * np.maximum(s1, 1) ** 2
+    a = np.where(spread_ok, (sz * stt - st * stz) / np.where(spread_ok, den, 1.0), sz / np.maximum(s1, 1))
+    w = (s1 > 0).astype(np.float64)
+    centres = (np.arange(n) + 0.5) * win
+    zz = _whittaker(np.where(w > 0, a, 0.0), w, _lam(50.0, win * step))
+    return np.interp(np.arange(m), centres, zz)
+
+
+def _assemble(cloud: MarkingCloud, candidates: list[Candidate], superline: np.ndarray, frame: Frame, fit: _Fit,
+              structure: _Structure, label: np.ndarray, k_pt: np.ndarray, t_pt: np.ndarray, inside: np.ndarray,
+              xyz: np.ndarray, warnings: list[str], cfg: LanesConfig) -> LaneModel:
+    """Trim to the measured road, number boundaries left to right, classify them, write the model."""
+    step = frame.s[1] - frame.s[0]
+    on, t = structure.on, structure.t
+    valid = on.sum(axis=0) >= 2
+    idx = np.flatnonzero(valid)
+    a, b = int(idx[0]), int(idx[-1]) + 1
+    s = frame.s[a:b] - frame.s[a]
+    on, t = on[:, a:b], t[:, a:b]
+    used = np.flatnonzero(on.any(axis=1))
+    med = np.array([np.nanmedian(t[i]) for i in used])
+    ordered = used[np.argsort(-med, kind="stable")]
+    new_id = np.full(len(on), -1, dtype=np.int64)
+    new_id[ordered] = np.arange(len(ordered))
+    z_ref = _reference_z(k_pt, t_pt, xyz[:, 2], inside & (label >= 0) & np.isin(label, used), len(frame.s), step)
+    reference = np.column_stack([frame.xy[a:b], z_ref[a:b]])
+    boundaries = []
+    for old in ordered:
+        sel = (label == old) & inside
+        kind, dash, gap = _mark_pattern(frame.s[k_pt[sel]], cfg)
+        resid = t_pt[sel] - fit.t[old, k_pt[sel]]
+        width = marking_width(resid[np.isfinite(resid)])
+        boundaries.append(Boundary(id=int(new_id[old]), t=np.where(on[old], t[old], np.nan), mark_type=kind,
+                                   mark_width=round(width, 3) if width is not None else 0.15,
+                                   dash_length=dash, gap_length=gap))
+    sections, on_new, t_new = _sections(on[ordered], t[ordered], s, cfg.min_section_length_m)
+    for i, bnd in enumerate(boundaries):
+        bnd.t = t_new[i]
+    for i, c in enumerate(candidates):
+        c.superline = int(new_id[superline[i]]) if superline[i] < len(new_id) else -1
+    warnings.extend(_unused_notes(fit.t[:, a:b], on_new, ordered, s))
+    counts = [len(sec.boundary_ids) - 1 for sec in sections]
+    if len(set(counts)) > 1:
+        warnings.append("lane count changes along the road: " + ", ".join(
+            f"{n} from s {sec.s_start:.0f} m" for n, sec in zip(counts, sections, strict=False)))
+    return LaneModel(s=s, reference=reference, boundaries=boundaries, sections=sections, candidates=candidates,
+                     origin=cloud.origin, warnings=warnings)
+
+
+def _unused_notes(t_fit: np.ndarray, on: np.ndarray, ordered: np.ndarray, s: np.ndarray) -> list[str]:
+    """One warning per measured line for the stretches where it is not a lane boundary."""
+    notes = []
+    row = {int(old): i for i, old in enumerate(ordered)}
+    for x in range(len(t_fit)):
+        used = on[row[x]] if x in row else np.zeros(len(s), dtype=bool)
+        unused = np.isfinite(t_fit[x]) & ~used
+        spans = [(a, b) for a, b in _runs(unused) if s[b - 1] - s[a] >= 1.0]
+        if not spans:
+            continue
+        where = ", ".join(f"{s[a]:.0f}-{s[b - 1]:.0f}" for a, b in spans[:3]) + (" ..." if len(spans) > 3 else "")
+        t_med = float(np.nanmedian(t_fit[x][unused]))
+        name = f"boundary {row[x]}" if x in row else "a marking line"
+        notes.append(f"{name} ({t_med:+.1f} m from the reference) ignored on s {where} m: off the carriageway, "
+                     "a duplicate, or no stable lane beside it")
+    return notes
+
+
+# --------------------------------------------------------------------------------------------
+# lanes.json
+
+
+def _num(a: np.ndarray) -> list:
+    """Array as nested lists with NaN as null (JSON has no NaN)."""
+    arr = np.asarray(a, dtype=np.float64)
+    return [None if not math.isfinite(v) else float(v) for v in arr.ravel()] if arr.ndim == 1 else \
+        [_num(row) for row in arr]
+
+
+def save_lanes(model: LaneModel, path: str | Path) -> None:
+    """Write the lane model as JSON (format `lidar2xodr.lanes/1`, NaN written as null), atomically."""
+    data = {
+        "format": FORMAT,
+        "s": _num(model.s),
+        "reference": _num(model.reference),
+        "boundaries": [
+            {"id": b.id, "t": _num(b.t), "mark_type": b.mark_type, "mark_width": float(b.mark_width),
+             "dash_length": b.dash_length, "gap_length": b.gap_length}
+            for b in model.boundaries
+        ],
+        "sections": [{"s_start": sec.s_start, "s_end": sec.s_end, "boundary_ids": list(sec.boundary_ids)}
+                     for sec in model.sections],
+        "candidates": [
+            {"id": c.id, "superline": c.superline, "centers": _num(c.centers), "directions": _num(c.directions),
+             "cluster_ids": [int(i) for i in c.cluster_ids]}
+            for c in model.candidates
+        ],
+        "origin": {"lat": model.origin.lat, "lon": model.origin.lon, "alt": model.origin.alt,
+                   "proj": model.origin.proj},
+        "warnings": list(model.warnings),
+    }
+    write_text(path, json.dumps(data, separators=(",", ":"), sort_keys=True) + "\n")
+
+
+def _arr(value: object, shape_tail: tuple[int, ...], where: str, name: str) -> np.ndarray:
+    try:
+        arr = np.array([[np.nan if v is None else v for v in row] for row in value] if shape_tail
+                       else [np.nan if v is None else v for v in value], dtype=np.float64)  # type: ignore[union-attr]
+    except (TypeError, ValueError):
+        raise InputError(where, f"{name} is not a list of numbers") from None
+    if len(arr) == 0 and shape_tail:
+        arr = arr.reshape(0, *shape_tail)
+    if arr.shape[1:] != shape_tail:
+        raise InputError(where, f"{name} has shape {arr.shape}, expected (n, {', '.join(map(str, shape_tail))})"
+                         if shape_tail else f"{name} has shape {arr.shape}, expected (n,)")
+    return arr
+
+
+def load_lanes(path: str | Path) -> LaneModel:
+    """Read lanes.json written by `save_lanes`; InputError naming the file and element when malformed."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(path, "lane model not found") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(path, f"cannot read the lane model: {exc}") from None
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        raise InputError(path, f"not a lane model (expected format {FORMAT!r})")
+    try:
+        s = _arr(data["s"], (), str(path), "s")
+        ref = _arr(data["reference"], (3,), str(path), "reference")
+        if len(ref) != len(s):
+            raise InputError(path, f"reference has {len(ref)} rows for {len(s)} stations")
+        boundaries = []
+        for i, b in enumerate(data["boundaries"]):
+            where = f"{path} boundary {b.get('id', i)}"
+            t = _arr(b["t"], (), where, "t")
+            if len(t) != len(s):
+                raise InputError(where, f"t has {len(t)} values for {len(s)} stations")
+            if b["mark_type"] not in ("solid", "broken"):
+                raise InputError(where, f"mark_type {b['mark_type']!r} (solid or broken)")
+            boundaries.append(Boundary(int(b["id"]), t, str(b["mark_type"]), float(b["mark_width"]),
+                                       None if b["dash_length"] is None else float(b["dash_length"]),
+                                       None if b["gap_length"] is None else float(b["gap_length"])))
+        ids = {b.id for b in boundaries}
+        sections = []
+        for j, sec in enumerate(data["sections"]):
+            bad = [i for i in sec["boundary_ids"] if i not in ids]
+            if bad:
+                raise InputError(f"{path} section {j}", f"names unknown boundaries {bad}")
+            sections.append(LaneSection(float(sec["s_start"]), float(sec["s_end"]),
+                                        [int(i) for i in sec["boundary_ids"]]))
+        candidates = []
+        for c in data["candidates"]:
+            where = f"{path} candidate {c.get('id')}"
+            candidates.append(Candidate(int(c["id"]), _arr(c["centers"], (3,), where, "centers"),
+                                        _arr(c["directions"], (2,), where, "directions"),
+                                        np.asarray(c["cluster_ids"], dtype=np.int64), int(c["superline"])))
+        o = data["origin"]
+        origin = GeoOrigin(o["lat"], o["lon"], float(o["alt"]), o["proj"])
+        warnings = [str(w) for w in data["warnings"]]
+    except (KeyError, TypeError, AttributeError) as exc:
+        raise InputError(path, f"malformed lane model: missing or wrong field {exc}") from None
+    return LaneModel(s=s, reference=ref, boundaries=boundaries, sections=sections, candidates=candidates,
+                     origin=origin, warnings=warnings)
