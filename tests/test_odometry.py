@@ -1,0 +1,121 @@
+"""LiDAR odometry: synthetic drive with posts (exact truth), and the real aiMotive motorway sample."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_extraction import DASH_LEN, DASH_PERIOD, SOLID_Y, T0, ListDataset, make_drive
+
+from lidar2xodr.config import ExtractionConfig
+from lidar2xodr.datasets import open_dataset
+from lidar2xodr.extraction import ExtractionReport, extract_markings
+from lidar2xodr.odometry import deskew, se3_exp, se3_log
+
+
+class NoPoses(ListDataset):
+    def poses(self) -> None:  # type: ignore[override]
+        return None
+
+
+def test_se3_helpers_and_deskew() -> None:
+    xi = np.array([1.0, -2.0, 0.5, 0.01, -0.02, 0.3])
+    assert np.allclose(se3_log(se3_exp(xi)), xi)
+    pts = np.array([[10.0, 0.0, 0.0], [0.0, 5.0, 1.0]])
+    twist = np.array([20.0, 0, 0, 0, 0, 0])
+    out = deskew(pts, np.array([0.05, -0.05]), twist)
+    assert np.allclose(out, [[11.0, 0.0, 0.0], [-1.0, 5.0, 1.0]])
+    assert deskew(pts, None, twist) is pts
+
+
+@pytest.fixture(scope="module")
+def lidar_run() -> tuple:
+    drive = make_drive(n_scans=20, speed=25.0, n_ground=6000, posts=True, seed=3)
+    rep = ExtractionReport()
+    cloud = extract_markings(NoPoses(drive, with_times=True), ExtractionConfig(), report=rep)  # type: ignore[arg-type]
+    return drive, cloud, rep
+
+
+def test_lidar_odometry_recovers_the_synthetic_motion(lidar_run: tuple) -> None:
+    drive, cloud, rep = lidar_run
+    assert rep.odometry == "lidar"
+    assert rep.start_speed_mps == pytest.approx(25.0, abs=0.5)
+    t = cloud.trajectory.times
+    expected = drive.speed * (t - t[0])
+    pos = cloud.trajectory.positions
+    assert np.max(np.abs(pos[:, 0] - expected)) < 0.15  # < 0.3 % of the 47 m driven
+    assert np.max(np.abs(pos[:, 1:])) < 0.15
+    assert cloud.origin.lat is None  # the world is the first vehicle frame, not geodetic
+
+
+def test_markings_from_lidar_odometry_are_sharp(lidar_run: tuple) -> None:
+    drive, cloud, _ = lidar_run
+    x0 = drive.speed * (cloud.trajectory.times[0] - T0)  # world frame = vehicle frame of the first scan
+    y = cloud.xyz[:, 1]
+    solid = np.min(np.abs(y[:, None] - np.array(SOLID_Y)[None]), axis=1) < 0.3
+    assert solid.sum() > 200
+    assert np.percentile(np.min(np.abs(y[solid, None] - np.array(SOLID_Y)[None]), axis=1), 95) < 0.15
+    dash = np.abs(y) < 0.3
+    phase = np.mod(cloud.xyz[dash, 0] + x0, DASH_PERIOD)
+    assert np.mean((phase > -0.2) & (phase < DASH_LEN + 0.2)) > 0.95
+
+
+def test_lidar_odometry_is_deterministic(lidar_run: tuple) -> None:
+    drive, cloud, _ = lidar_run
+    again = extract_markings(NoPoses(drive, with_times=True), ExtractionConfig())  # type: ignore[arg-type]
+    assert np.array_equal(again.trajectory.poses, cloud.trajectory.poses)
+    assert np.array_equal(again.xyz, cloud.xyz)
+
+
+def fit_edge_line(xyz: np.ndarray, intensity: np.ndarray, band: float = 0.3, seed_x: tuple = (0.0, 20.0),
+                  y_range: tuple = (0.5, 4.0)) -> dict:
+    """Track the brightest line left of the start along x and fit y(x) with a cubic.
+
+    Seeds on the intensity-weighted histogram peak of bright points left of the vehicle within
+    `seed_x`, then grows the window 15 m at a time, refitting (degree 1..3) on points within
+    `band` of the current fit.
+    """
+    x, y = xyz[:, 0], xyz[:, 1]
+    seed = (x > seed_x[0]) & (x < seed_x[1]) & (y > y_range[0]) & (y < y_range[1])
+    hist, edges = np.histogram(y[seed], bins=np.arange(y_range[0], y_range[1] + 1e-9, 0.1), weights=intensity[seed])
+    y0 = edges[int(np.argmax(hist))] + 0.05
+    lo, hi = seed_x
+    coef = np.array([0.0, y0])
+    while True:
+        deg = 1 if hi - lo < 40 else (2 if hi - lo < 80 else 3)
+        win = (x > lo - 15) & (x < hi + 15) & (np.abs(y - np.polyval(coef, x)) < band)
+        coef = np.polyfit(x[win], y[win], deg)
+        new_lo, new_hi = max(lo - 15, x[win].min()), min(hi + 15, x[win].max())
+        if new_lo >= lo - 1.0 and new_hi <= hi + 1.0:
+            break
+        lo, hi = min(lo, new_lo), max(hi, new_hi)
+    sel = (x > lo) & (x < hi) & (np.abs(y - np.polyval(coef, x)) < band)
+    coef = np.polyfit(x[sel], y[sel], 3)
+    res = y[sel] - np.polyval(coef, x[sel])
+    bins = np.floor((x[sel] - lo) / 5.0).astype(int)
+    medians = np.array([np.median(res[bins == b]) for b in np.unique(bins) if np.sum(bins == b) >= 10])
+    return {"y0": y0, "lo": float(x[sel].min()), "hi": float(x[sel].max()), "n": int(sel.sum()),
+            "rms": float(np.sqrt(np.mean(res**2))), "max_bin": float(np.max(np.abs(medians))), "bins": len(medians)}
+
+
+@pytest.mark.slow
+def test_aimotive_motorway_edge_line_is_straight(shared_data: Path) -> None:
+    """Real drive without poses: 50 Pandar64 revolutions at ~30 m/s, accumulated with LiDAR odometry.
+
+    The solid left edge line, accumulated over all 50 scans, must lie within 0.10 m of a smooth
+    line along its whole length: a wrong speed doubles dashes, a yaw error bends or fans the line.
+    """
+    rep = ExtractionReport()
+    cloud = extract_markings(open_dataset(shared_data / "lidar" / "aimotive_highway_sample"), ExtractionConfig(),
+                             report=rep)
+    assert rep.odometry == "lidar" and rep.scans_used == 50
+    assert 25.0 < rep.start_speed_mps < 35.0
+    assert rep.drive_length_m > 60.0
+    speeds = np.linalg.norm(np.diff(cloud.trajectory.positions, axis=0), axis=1) / np.diff(cloud.trajectory.times)
+    assert speeds.std() < 1.0  # a motorway drive at steady speed, no jumps
+    fit = fit_edge_line(cloud.xyz, cloud.intensity)
+    assert 1.0 < fit["y0"] < 2.5  # the solid line left of the ego lane
+    assert fit["hi"] - fit["lo"] > 100.0 and fit["bins"] >= 20
+    assert fit["rms"] < 0.10
+    assert fit["max_bin"] < 0.10
