@@ -242,3 +242,124 @@ def _paint(line: Line, rng: np.random.Generator, density: float, ego_t: float) -
         t = line.t(s) + rng.uniform(-line.width / 2, line.width / 2, len(s))
         out.append(np.stack([s, t], axis=1))
     return np.concatenate(out) if out else np.zeros((0, 2))
+
+
+def _polyline_distance(points: np.ndarray, line: np.ndarray) -> np.ndarray:
+    """Distance of each point to a polyline (inf where its foot falls outside the line)."""
+    a, b = line[:-1], line[1:]
+    ab = b - a
+    ln2 = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-12)
+    from scipy.spatial import cKDTree
+
+    _, k = cKDTree(0.5 * (a + b)).query(points, k=min(4, len(a)))
+    k = np.atleast_2d(k.T).T if k.ndim == 1 else k
+    best = np.full(len(points), np.inf)
+    for j in range(k.shape[1]):
+        seg = k[:, j]
+        f = np.einsum("ij,ij->i", points - a[seg], ab[seg]) / ln2[seg]
+        foot = a[seg] + np.clip(f, 0, 1)[:, None] * ab[seg]
+        d = np.linalg.norm(points - foot, axis=1)
+        d = np.where((f >= -1e-6) & (f <= 1 + 1e-6), d, np.inf)
+        best = np.minimum(best, d)
+    return best
+
+
+def model_lines(model) -> dict[int, list[np.ndarray]]:
+    """World x, y polylines of each boundary (one per stretch where it is defined)."""
+    ref = np.asarray(model.reference)[:, :2]
+    tan = np.gradient(ref, axis=0)
+    tan /= np.linalg.norm(tan, axis=1)[:, None]
+    nrm = np.stack([-tan[:, 1], tan[:, 0]], axis=1)
+    out: dict[int, list[np.ndarray]] = {}
+    for b in model.boundaries:
+        ok = np.isfinite(b.t)
+        d = np.diff(np.concatenate([[0], ok.astype(int), [0]]))
+        for a0, a1 in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)):
+            if a1 - a0 >= 2:
+                out.setdefault(b.id, []).append(ref[a0:a1] + nrm[a0:a1] * np.asarray(b.t)[a0:a1, None])
+    return out
+
+
+def evaluate(model, road: SynthRoad, margin: float = 20.0) -> dict:
+    """Boundary RMSE and coverage per truth line, lane count agreement, lane width bias and sigma."""
+    lines = model_lines(model)
+    res: dict = {"lines": {}}
+    all_d = []
+    for line in road.lines:
+        s = np.arange(line.s_start + margin, line.s_end - margin, 1.0)
+        if line.name == "exit" and road.exit_lane is not None:
+            s = s[road.lane_count(s) > len(road.lane_widths)]
+        if len(s) == 0:
+            continue
+        pts = road.line_xy(line, s)
+        best = None
+        for bid, parts in lines.items():
+            d = np.min([_polyline_distance(pts, p) for p in parts], axis=0)
+            cov = d < 0.5
+            if best is None or cov.mean() > best[1]:
+                best = (bid, float(cov.mean()), d)
+        bid, cov, d = best
+        ok = d < 0.5
+        rmse = float(np.sqrt(np.mean(d[ok] ** 2))) if ok.any() else np.inf
+        res["lines"][line.name] = {"boundary": bid, "coverage": cov, "rmse": rmse}
+        all_d.append(d[ok])
+    res["rmse"] = float(np.sqrt(np.mean(np.concatenate(all_d) ** 2)))
+    # lane count and widths at the model stations
+    ref = np.asarray(model.reference)[:, :2]
+    tan = np.gradient(ref, axis=0)
+    tan /= np.linalg.norm(tan, axis=1)[:, None]
+    nrm = np.stack([-tan[:, 1], tan[:, 0]], axis=1)
+    base = _project_base(road, ref)
+    counts = np.full(len(model.s), -1)
+    widths_err = []
+    for sec in model.sections:
+        m = (model.s >= sec.s_start) & (model.s < sec.s_end)
+        counts[m] = len(sec.boundary_ids) - 1
+        tb = {b.id: np.asarray(b.t) for b in model.boundaries}
+        for left, right in zip(sec.boundary_ids[:-1], sec.boundary_ids[1:]):
+            w = tb[left][m] - tb[right][m]
+            mid = ref[m] + nrm[m] * (0.5 * (tb[left][m] + tb[right][m]))[:, None]
+            tw = _truth_width(road, mid)
+            ok = np.isfinite(tw) & (tw > 3.0)
+            widths_err.append(w[ok] - tw[ok])
+    valid = np.isfinite(base) & (base > margin) & (base < road.s[-1] - margin)
+    truth = road.lane_count(np.where(valid, base, 0.0))
+    if road.exit_lane is not None:
+        s_a, s_b, _ = road.exit_lane
+        valid &= (np.abs(base - s_a) > margin) & (np.abs(base - s_b) > margin)
+    res["lane_count_ok"] = float(np.mean(counts[valid] == truth[valid]))
+    we = np.concatenate(widths_err) if widths_err else np.zeros(0)
+    res["width_bias"] = float(np.mean(we)) if len(we) else np.nan
+    res["width_sigma"] = float(np.std(we)) if len(we) else np.nan
+    return res
+
+
+def _project_base(road: SynthRoad, xy: np.ndarray) -> np.ndarray:
+    """Base-centreline station of each point."""
+    from scipy.spatial import cKDTree
+
+    _, k = cKDTree(road.xy).query(xy)
+    return road.s[k]
+
+
+def _truth_width(road: SynthRoad, xy: np.ndarray) -> np.ndarray:
+    """Width of the truth lane holding each point (NaN outside the carriageway)."""
+    from scipy.spatial import cKDTree
+
+    _, k = cKDTree(road.xy).query(xy)
+    s = road.s[k]
+    t = np.einsum("ij,ij->i", xy - road.xy[k], road.normal[k])
+    offs = []
+    for line in road.lines:
+        o = line.t(s)
+        o = np.where((s >= line.s_start) & (s <= line.s_end), o, np.nan)
+        offs.append(o)
+    offs = np.array(offs)
+    out = np.full(len(xy), np.nan)
+    for i in range(len(xy)):
+        o = np.sort(offs[:, i][np.isfinite(offs[:, i])])[::-1]
+        for a, b in zip(o[:-1], o[1:]):
+            if a >= t[i] >= b:
+                out[i] = a - b
+                break
+    return out

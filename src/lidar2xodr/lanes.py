@@ -785,30 +785,34 @@ def _sections(on: np.ndarray, t: np.ndarray, s: np.ndarray,
 
 
 def _mark_pattern(s_pts: np.ndarray, cfg: LanesConfig) -> tuple[str, float | None, float | None]:
-    """Solid or broken from the painted runs along s; dash and gap lengths for broken lines."""
+    """Solid or broken from the painted runs along s; dash and gap lengths for broken lines.
+
+    Runs are split at holes over 1-2.5 m (10 median point spacings: far, sparse lines have holes
+    inside their dashes); the length-weighted median run decides
+    (occlusions shorten solid runs but leave them far longer than a dash); dash and gap are the
+    medians of the runs and holes of dash size.
+    """
     if len(s_pts) < 10:
         return "solid", None, None
-    b = 0.25
-    k = np.floor((s_pts - s_pts.min()) / b).astype(np.int64)
-    occ = np.zeros(k.max() + 1, dtype=bool)
-    occ[k] = True
-    runs = _runs(occ)
-    merged: list[list[int]] = []
-    for s0, s1 in runs:
-        if merged and (s0 - merged[-1][1]) * b < 1.0:
-            merged[-1][1] = s1
-        else:
-            merged.append([s0, s1])
-    lengths = np.array([(e - s) * b for s, e in merged])
+    s = np.sort(s_pts)
+    spacing = np.diff(s)
+    hole = float(np.clip(10.0 * np.median(spacing), 1.0, 2.5))
+    cut = np.flatnonzero(spacing > hole)
+    first = np.concatenate([[0], cut + 1])
+    last = np.concatenate([cut, [len(s) - 1]])
+    lengths = s[last] - s[first]
     order = np.argsort(lengths)
     cum = np.cumsum(lengths[order])
+    if cum[-1] <= 0:
+        return "solid", None, None
     weighted_median = lengths[order][np.searchsorted(cum, cum[-1] / 2.0)]
     if weighted_median > cfg.solid_min_run_m:
         return "solid", None, None
     dashes = lengths[(lengths >= 1.0) & (lengths <= cfg.solid_min_run_m)]
-    gaps = np.array([(merged[i + 1][0] - merged[i][1]) * b for i in range(len(merged) - 1)])
-    dash = float(np.median(dashes)) if len(dashes) else None
-    gap = float(np.median(gaps)) if len(gaps) else None
+    holes = s[first[1:]] - s[last[:-1]]
+    holes = holes[holes <= 3.0 * cfg.solid_min_run_m]
+    dash = round(float(np.median(dashes)), 2) if len(dashes) else None
+    gap = round(float(np.median(holes)), 2) if len(holes) else None
     return "broken", dash, gap
 
 
@@ -832,20 +836,52 @@ def _spread_table() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 _SPREAD: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
 
-def marking_width(residuals: np.ndarray) -> float | None:
-    """Paint width from lateral residuals: uniform paint convolved with Gaussian noise, by quantiles."""
+def marking_widths(residuals: list[np.ndarray]) -> list[float | None]:
+    """Paint widths from lateral residuals: uniform paint blurred by Gaussian noise, by quantiles.
+
+    Each line's (q90 - q10) / (q75 - q25) gives its noise-to-width ratio; the noise is one
+    property of the drive, so its median over the well-sampled lines (1000 points or more) is
+    used for every line, and each width then follows from its own q90 - q10. None when a line
+    has fewer than 30 points.
+    """
     global _SPREAD
-    if len(residuals) < 30:
-        return None
     if _SPREAD is None:
         _SPREAD = _spread_table()
     ks, ratio, spread = _SPREAD
-    q10, q25, q75, q90 = np.quantile(residuals, [0.1, 0.25, 0.75, 0.9])
-    if q75 - q25 <= 0:
-        return None
-    r = float(np.clip((q90 - q10) / (q75 - q25), ratio[0], ratio[-1]))
-    k = float(np.interp(r, ratio, ks))
-    return float((q90 - q10) / np.interp(k, ks, spread))
+    stats = []
+    for r in residuals:
+        if len(r) < 30:
+            stats.append(None)
+            continue
+        q10, q25, q75, q90 = np.quantile(r, [0.1, 0.25, 0.75, 0.9])
+        stats.append((len(r), q25, q75, q10, q90))
+    sigmas = []
+    for st in stats:
+        if st is None or st[0] < 1000 or st[2] <= st[1]:
+            continue
+        k = float(np.interp(np.clip((st[4] - st[3]) / (st[2] - st[1]), ratio[0], ratio[-1]), ratio, ks))
+        width = (st[4] - st[3]) / float(np.interp(k, ks, spread))
+        sigmas.append(k * width)
+    noise = float(np.median(sigmas)) if sigmas else None
+    out: list[float | None] = []
+    for st in stats:
+        if st is None:
+            out.append(None)
+            continue
+        r1090 = st[4] - st[3]
+        if noise is None:
+            k = float(np.interp(np.clip(r1090 / max(st[2] - st[1], 1e-9), ratio[0], ratio[-1]), ratio, ks))
+            out.append(float(r1090 / np.interp(k, ks, spread)))
+            continue
+        lo, hi = 1e-3, 2.0
+        for _ in range(50):
+            w = 0.5 * (lo + hi)
+            if w * float(np.interp(noise / w, ks, spread, right=spread[-1] * (noise / w) / ks[-1])) < r1090:
+                lo = w
+            else:
+                hi = w
+        out.append(float(0.5 * (lo + hi)) if hi < 2.0 else None)
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -877,7 +913,7 @@ def build_lane_model(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lane
     lam = _lam(cfg.boundary_smoothing_m, step)
     structure = fit = None
     for it in range(3):
-        k_pt, t_pt, inside = _stations(frame, xyz[:, :2])
+        k_pt, t_pt, inside, s_pt = _stations(frame, xyz[:, :2])
         fit = _fit_boundaries(k_pt, t_pt, label, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)))
         short = np.isfinite(fit.t).sum(axis=1) * step < cfg.min_section_length_m
         n_short = int(np.sum(short & np.isfinite(fit.t).any(axis=1)))
@@ -895,8 +931,8 @@ def build_lane_model(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lane
     if n_short:
         warnings.append(f"ignored {n_short} marking pieces shorter than {cfg.min_section_length_m:g} m "
                         "(stray returns, blobs, arrows)")
-    return _assemble(cloud, candidates, superline, frame, fit, structure, label, k_pt, t_pt, inside,
-                     xyz, warnings, cfg)
+    pts = _Points(k_pt, t_pt, s_pt, inside, label, xyz[:, 2])
+    return _assemble(cloud, candidates, superline, frame, fit, structure, pts, warnings, cfg)
 
 
 @dataclass
@@ -905,10 +941,11 @@ class _Fit:
     support: np.ndarray  # (B,) points used
 
 
-def _stations(frame: Frame, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _stations(frame: Frame, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Nearest station, offset, inside flag and exact station of every point."""
     s, t, inside = frame.project(xy)
     k = np.clip(np.rint(s / (frame.s[1] - frame.s[0])).astype(np.int64), 0, len(frame.s) - 1)
-    return k, t, inside
+    return k, t, inside, s
 
 
 def _fit_boundaries(k: np.ndarray, t: np.ndarray, label: np.ndarray, inside: np.ndarray, n_sl: int, m: int,
@@ -1063,10 +1100,22 @@ def _reference_z(k: np.ndarray, t: np.ndarray, z: np.ndarray, use: np.ndarray, m
     return np.interp(np.arange(m), centres, zz)
 
 
+@dataclass
+class _Points:
+    """Marking points in the current frame: station index, offset, station, inside flag, superline."""
+
+    k: np.ndarray
+    t: np.ndarray
+    s: np.ndarray
+    inside: np.ndarray
+    label: np.ndarray
+    z: np.ndarray
+
+
 def _assemble(cloud: MarkingCloud, candidates: list[Candidate], superline: np.ndarray, frame: Frame, fit: _Fit,
-              structure: _Structure, label: np.ndarray, k_pt: np.ndarray, t_pt: np.ndarray, inside: np.ndarray,
-              xyz: np.ndarray, warnings: list[str], cfg: LanesConfig) -> LaneModel:
+              structure: _Structure, pts: _Points, warnings: list[str], cfg: LanesConfig) -> LaneModel:
     """Trim to the measured road, number boundaries left to right, classify them, write the model."""
+    label, k_pt, t_pt, inside, s_pt = pts.label, pts.k, pts.t, pts.inside, pts.s
     step = frame.s[1] - frame.s[0]
     on, t = structure.on, structure.t
     valid = on.sum(axis=0) >= 2
@@ -1079,14 +1128,18 @@ def _assemble(cloud: MarkingCloud, candidates: list[Candidate], superline: np.nd
     ordered = used[np.argsort(-med, kind="stable")]
     new_id = np.full(len(on), -1, dtype=np.int64)
     new_id[ordered] = np.arange(len(ordered))
-    z_ref = _reference_z(k_pt, t_pt, xyz[:, 2], inside & (label >= 0) & np.isin(label, used), len(frame.s), step)
+    z_ref = _reference_z(k_pt, t_pt, pts.z, inside & (label >= 0) & np.isin(label, used), len(frame.s), step)
     reference = np.column_stack([frame.xy[a:b], z_ref[a:b]])
     boundaries = []
+    residuals = []
     for old in ordered:
         sel = (label == old) & inside
-        kind, dash, gap = _mark_pattern(frame.s[k_pt[sel]], cfg)
         resid = t_pt[sel] - fit.t[old, k_pt[sel]]
-        width = marking_width(resid[np.isfinite(resid)])
+        residuals.append(resid[np.isfinite(resid)])
+    widths = marking_widths(residuals)
+    for old, width in zip(ordered, widths, strict=True):
+        sel = (label == old) & inside
+        kind, dash, gap = _mark_pattern(s_pt[sel], cfg)
         boundaries.append(Boundary(id=int(new_id[old]), t=np.where(on[old], t[old], np.nan), mark_type=kind,
                                    mark_width=round(width, 3) if width is not None else 0.15,
                                    dash_length=dash, gap_length=gap))
