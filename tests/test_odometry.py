@@ -45,7 +45,8 @@ def test_lidar_odometry_recovers_the_synthetic_motion(lidar_run: tuple) -> None:
     expected = drive.speed * (t - t[0])
     pos = cloud.trajectory.positions
     assert np.max(np.abs(pos[:, 0] - expected)) < 0.15  # < 0.3 % of the 47 m driven
-    assert np.max(np.abs(pos[:, 1:])) < 0.15
+    assert np.max(np.abs(pos[:, 1])) < 0.15
+    assert np.max(np.abs(pos[:, 2])) < 0.3  # height rests on posts only: weakly constrained
     assert cloud.origin.lat is None  # the world is the first vehicle frame, not geodetic
 
 
