@@ -135,7 +135,9 @@ def test_far_away_map_is_not_small(tmp_path: Path) -> None:
     assert m["boundaries"]["mean_m"] > 35.0 and m["boundaries"]["max_m"] >= 50.0 - 1e-6
     assert m["centerline"]["mean_m"] == pytest.approx(50.0, abs=1e-6)
     assert m["lane_count_agreement"] == 0.0 and m["coverage"] == 0.0
-    assert m["lane_width"]["pairs"] == 0
+    assert m["lane_width"] == {"bias_m": None, "std_m": None, "pairs": 0}
+    res = CliRunner().invoke(app, ["compare", str(gen), str(ref)])
+    assert res.exit_code == 0 and "no matched lane" in res.output
 
 
 def test_opposite_direction_is_not_matched(tmp_path: Path) -> None:

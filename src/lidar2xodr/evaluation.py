@@ -31,9 +31,9 @@ Matching rule (the README quotes this):
    direction at all is the nearest line of any direction used.)
 2. A generated centre sample is "matched" when that nearest reference centre lies within
    (generated half-width at that sample + `near_m`) and the sample is beside it, not beyond its end
-   (more than half a sample step past its first or last point); a reference centre sample is "near" when the
-   nearest generated centre line (same heading rule) lies within (that generated half-width +
-   `near_m`) and the sample is beside it.
+   (more than half a sample step past its first or last point); a reference centre sample is "near"
+   when the nearest generated centre line (same heading rule) lies within (that generated
+   half-width + `near_m`) and the sample is beside it.
 3. `boundaries.*` and `centerline.*` are statistics of the generated-to-reference distances of rule 1,
    weighted by the length each sample represents; `eval_length_m` is the generated length evaluated
    (all boundaries summed, resp. the generated centre lines).
@@ -41,7 +41,8 @@ Matching rule (the README quotes this):
    reference carriageway sample and that is matched (rule 2), divided by ALL generated centre length.
 5. `lane_width.bias_m` / `std_m`: for matched samples, every generated lane of full width is paired
    with the reference lane of the matched sample whose centre is nearest, if the generated lane centre
-   lies inside that reference lane; statistics of generated minus reference width.
+   lies inside that reference lane; statistics of generated minus reference width (`pairs` counts
+   them; bias and sigma are null when there is no pair: an unmatched map has no width error to show).
 6. `coverage`: the evaluated reference part is, per reference road and side, the stretch of s between
    the first and the last "near" reference sample (rule 2); coverage = near length / that length.
    Gaps in the middle (the generated map wanders off or stops and restarts) lower it; reference roads
@@ -360,11 +361,11 @@ def compare_maps(generated: Path, reference: Path, cfg: EvaluationConfig) -> dic
 
 
 def _lane_width(gen: Carriageways, ref: Carriageways, matched: np.ndarray, v_c: np.ndarray, min_w: float
-                ) -> dict[str, float]:
+                ) -> dict[str, float | int | None]:
     """Generated minus reference width of every full-width generated lane inside a reference lane."""
     idx = np.flatnonzero(matched)
     if idx.size == 0 or gen.lane_width.shape[1] == 0:
-        return {"bias_m": 0.0, "std_m": 0.0, "pairs": 0}
+        return {"bias_m": None, "std_m": None, "pairs": 0}
     g_xy, g_w = gen.lane_xy[idx], gen.lane_width[idx]  # (m, Lg, 2), (m, Lg)
     r_xy, r_w = ref.lane_xy[v_c[idx]], ref.lane_width[v_c[idx]]  # (m, Lr, 2), (m, Lr)
     d = np.hypot(*(g_xy[:, :, None, :] - r_xy[:, None, :, :]).transpose(3, 0, 1, 2))  # (m, Lg, Lr)
@@ -376,7 +377,7 @@ def _lane_width(gen: Carriageways, ref: Carriageways, matched: np.ndarray, v_c: 
     diff = (g_w - rw)[ok]
     weights = np.broadcast_to(gen.centre.weight[idx][:, None], g_w.shape)[ok]
     if diff.size == 0 or weights.sum() <= 0:
-        return {"bias_m": 0.0, "std_m": 0.0, "pairs": 0}
+        return {"bias_m": None, "std_m": None, "pairs": 0}
     bias = float(np.sum(weights * diff) / weights.sum())
     std = float(math.sqrt(np.sum(weights * (diff - bias) ** 2) / weights.sum()))
     return {"bias_m": bias, "std_m": std, "pairs": int(diff.size)}
@@ -411,8 +412,9 @@ def print_metrics(metrics: dict[str, Any], console: Console) -> None:
     summary.add_column("item")
     summary.add_column("value", justify="right")
     summary.add_row("lane count agreement", f"{metrics['lane_count_agreement']:.3f}")
-    summary.add_row("lane width bias (m)", f"{metrics['lane_width']['bias_m']:+.3f}")
-    summary.add_row("lane width sigma (m)", f"{metrics['lane_width']['std_m']:.3f}")
+    width = metrics["lane_width"]
+    summary.add_row("lane width bias (m)", "no matched lane" if width["bias_m"] is None else f"{width['bias_m']:+.3f}")
+    summary.add_row("lane width sigma (m)", "no matched lane" if width["std_m"] is None else f"{width['std_m']:.3f}")
     summary.add_row("coverage of the reference", f"{metrics['coverage']:.3f}")
     summary.add_row("evaluated reference length (m)", f"{metrics['reference_eval_length_m']:.0f}")
     summary.add_row("frame", metrics["frame"])
