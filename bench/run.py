@@ -72,7 +72,7 @@ def bench_map(name: str, xodr: Path, out: Path, length_m: float, lane_target: fl
     )
     row["meets_targets"] = bool(
         row["boundaries_rmse"] <= 0.10 and row["centerline_rmse"] <= 0.10 and row["lane_count"] >= lane_target
-        and abs(row["width_bias"]) <= 0.05 and row["width_std"] <= 0.08
+        and row["width_bias"] is not None and abs(row["width_bias"]) <= 0.05 and row["width_std"] <= 0.08
     )
     return row
 

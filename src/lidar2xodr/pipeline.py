@@ -199,8 +199,9 @@ def print_summary(result: BuildResult, console: Console) -> None:
                       "{rmse_m:.3f} / {mean_m:.3f} / {std_m:.3f} m".format(**metrics["boundaries"]))
         table.add_row("centre line RMSE", "{rmse_m:.3f} m".format(**metrics["centerline"]))
         table.add_row("lane count agreement", f"{metrics['lane_count_agreement']:.3f}")
+        lw = metrics["lane_width"]
         table.add_row("lane width bias / sigma",
-                      "{bias_m:+.3f} / {std_m:.3f} m".format(**metrics["lane_width"]))
+                      "no matched lanes" if lw.get("bias_m") is None else f"{lw['bias_m']:+.3f} / {lw['std_m']:.3f} m")
     for w in result.warnings:
         table.add_row("warning", w)
     if result.scenario_path:
