@@ -103,8 +103,9 @@ def simulate(map_path: str | Path, out_dir: str | Path, opts: SimOptions | None 
     length = float(opts.length_m) if opts.length_m else chain_len
     if length < 5.0:
         raise InputError(where, f"the route is only {length:.1f} m long: too short for a drive")
-    route = build_route(odr, nodes, closed, length + TRAFFIC_MARGIN_M, where)
-    length = min(length, route.length - 1.0)
+    one_pass = length <= chain_len + 0.5
+    route = build_route(odr, nodes, closed, chain_len if one_pass else length + TRAFFIC_MARGIN_M, where)
+    length = min(length, route.length - 0.5)
 
     agents = TrafficSim(route, opts.traffic, opts.speed_kmh, _stream(opts.seed, 1)).run(length)
     ego = ego_track(route, agents, T0, _stream(opts.seed, 2))

@@ -69,41 +69,34 @@ class Lidar:
         p = self.p
         t0 = self.t_start + n * p.period
         dirs_s, times = p.rays(t0, self.t_start)
-        d_veh = dirs_s @ self.mount_rot.T
-        origins, dirs = self._world_rays(times, d_veh)
+        (p0, p1), (r0, r1) = self.ego.at(np.array([t0, t0 + p.period]))
         k, _ = self.ego.slot(np.array([t0 + 0.5 * p.period]))
         scene = self.scene_for(float(self.ego.u[k[0]]))
+        # Poses move little within a scan: interpolate linearly between its start and end.
+        w = ((times - t0) / p.period).astype(np.float32)[:, None]
+        o0 = p0 + r0 @ self.mount_pos - scene.origin
+        o1 = p1 + r1 @ self.mount_pos - scene.origin
+        origins = (o0.astype(np.float32) + w * (o1 - o0).astype(np.float32))
+        d_veh = (dirs_s @ self.mount_rot.T).astype(np.float32)
+        dirs = d_veh @ r0.T.astype(np.float32) + w * (d_veh @ (r1 - r0).T.astype(np.float32))
         rng_hit, mat, base, cos_inc = scene.cast(origins, dirs)
         vehicle = np.full(len(times), -1, dtype=np.int32)
-        self._traffic(n, t0, times, origins, dirs, rng_hit, mat, base, cos_inc, vehicle)
+        self._traffic(n, t0, w[:, 0], origins, dirs, scene.origin, rng_hit, mat, base, cos_inc, vehicle)
         ret = R.returns(rng_hit, mat, base, cos_inc, p.detection_range, p.min_range_m, p.range_sigma_m, self.rng)
         i, r = ret.index, ret.rng_m
         xyz = (dirs_s[i] * r[:, None]).astype(np.float32)
-        world = origins[i] + dirs[i] * r[:, None]
-        pos, rot = self.ego.at(times[i])
-        height = np.einsum("ij,ij->i", world - pos, rot[:, :, 2]).astype(np.float32)
-        return ScanOut(xyz, R.to_raw(ret.reflectivity, p.intensity_scale), times[i], mat[i], vehicle[i], world,
-                       height)
+        local = origins[i].astype(np.float64) + dirs[i].astype(np.float64) * r[:, None]
+        wi = w[i].astype(np.float64)
+        ground = (p0 - scene.origin) + wi * (p1 - p0)
+        up = r0[:, 2] + wi * (r1[:, 2] - r0[:, 2])
+        height = np.einsum("ij,ij->i", local - ground, up).astype(np.float32)
+        return ScanOut(xyz, R.to_raw(ret.reflectivity, p.intensity_scale), times[i], mat[i], vehicle[i],
+                       local + scene.origin, height)
 
-    def _world_rays(self, times: np.ndarray, d_veh: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Origins and directions in the world for rays with vehicle-frame directions at their times."""
-        k, w = self.ego.slot(times)
-        origins = np.empty((len(times), 3))
-        dirs = np.empty((len(times), 3))
-        cuts = np.flatnonzero(np.diff(k)) + 1
-        for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(k)], strict=True):
-            j = k[a]
-            r0, r1 = self.ego.rot[j], self.ego.rot[j + 1]
-            p0, p1 = self.ego.pos[j] + r0 @ self.mount_pos, self.ego.pos[j + 1] + r1 @ self.mount_pos
-            ww = w[a:b, None]
-            origins[a:b] = p0 + ww * (p1 - p0)
-            dirs[a:b] = (d_veh[a:b] @ r0.T) * (1 - ww) + (d_veh[a:b] @ r1.T) * ww
-        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-        return origins, dirs
-
-    def _traffic(self, n: int, t0: float, times: np.ndarray, origins: np.ndarray, dirs: np.ndarray,
-                 rng_hit: np.ndarray, mat: np.ndarray, base: np.ndarray, cos_inc: np.ndarray,
-                 vehicle: np.ndarray) -> None:
+    def _traffic(self, n: int, t0: float, w: np.ndarray, origins: np.ndarray, dirs: np.ndarray,
+                 shift: np.ndarray, rng_hit: np.ndarray, mat: np.ndarray, base: np.ndarray,
+                 cos_inc: np.ndarray, vehicle: np.ndarray) -> None:
+        """Intersect the rays with the traffic boxes, each box moving linearly through the scan."""
         tp, ag = self.traffic, self.agents
         if n + 1 >= len(tp.start):
             return
@@ -111,7 +104,7 @@ class Lidar:
         if now.stop == now.start:
             return
         cols = tp.agent[now]
-        c0 = tp.centre[now]
+        c0 = tp.centre[now] - shift
         yaw = tp.yaw[now]
         c1 = c0 + tp.velocity[now] * self.p.period
         if n + 2 < len(tp.start):
@@ -120,30 +113,32 @@ class Lidar:
             for j, c in enumerate(cols):
                 q = pos_next.get(int(c))
                 if q is not None:
-                    c1[j] = tp.centre[nxt][q]
+                    c1[j] = tp.centre[nxt][q] - shift
         size = ag.size[cols]
         clear = ag.clearance[cols]
         half = np.column_stack([0.5 * size[:, 0], 0.5 * size[:, 1], 0.5 * (size[:, 2] - clear)])
-        mid = 0.5 * (origins[0] + origins[-1])
-        span = np.linalg.norm(origins[-1] - origins[0])
+        mid = 0.5 * (origins[0] + origins[-1]).astype(np.float64)
+        span = float(np.linalg.norm(origins[-1] - origins[0]))
         vec = 0.5 * (c0 + c1) - mid
         dist = np.linalg.norm(vec, axis=1)
         radius = np.linalg.norm(half, axis=1) + np.linalg.norm(c1 - c0, axis=1) + span + 0.2
-        near = dist - radius < self.p.max_range_m
-        for j in np.flatnonzero(near):
-            if dist[j] <= radius[j]:
-                cand = np.arange(len(times))
-            else:
-                cos_lim = np.cos(np.arcsin(min(1.0, radius[j] / dist[j])))
-                cand = np.flatnonzero(dirs @ (vec[j] / dist[j]) > cos_lim)
+        near = np.flatnonzero(dist - radius < self.p.max_range_m)
+        if len(near) == 0:
+            return
+        unit = (vec[near] / np.maximum(dist[near], 1e-9)[:, None]).astype(np.float32)
+        cos_lim = np.cos(np.arcsin(np.minimum(1.0, radius[near] / np.maximum(dist[near], 1e-9))))
+        cos_lim[dist[near] <= radius[near]] = -2.0
+        inside = (dirs @ unit.T) > cos_lim.astype(np.float32)[None, :]
+        for col, j in enumerate(near):
+            cand = np.flatnonzero(inside[:, col])
             if len(cand) == 0:
                 continue
-            w = (times[cand] - t0) / self.p.period
-            centre = c0[j] + w[:, None] * (c1[j] - c0[j])
+            ww = w[cand, None].astype(np.float64)
+            centre = c0[j] + ww * (c1[j] - c0[j])
             cy, sy = np.cos(yaw[j]), np.sin(yaw[j])
             rel = origins[cand] - centre
             o = np.column_stack([cy * rel[:, 0] + sy * rel[:, 1], -sy * rel[:, 0] + cy * rel[:, 1], rel[:, 2]])
-            d = dirs[cand]
+            d = dirs[cand].astype(np.float64)
             dl = np.column_stack([cy * d[:, 0] + sy * d[:, 1], -sy * d[:, 0] + cy * d[:, 1], d[:, 2]])
             t_hit, axis = _slab(o, dl, half[j])
             better = t_hit < rng_hit[cand]

@@ -72,16 +72,18 @@ def returns(
     rng: np.random.Generator,
 ) -> Returns:
     """Apply the intensity model, range limit, dropout, range noise and multipath to the hits."""
-    n = len(hit_range)
-    p = _EXPONENT[material]
-    refl = base * np.power(np.clip(cos_incidence, 1e-3, 1.0), p)
-    refl = refl * np.exp(rng.normal(0.0, 0.08, n))
-    limit = detection_range(refl) * (1.0 + 0.08 * rng.standard_normal(n))
-    ok = np.isfinite(hit_range) & (hit_range < limit) & (hit_range > min_range)
-    ok &= rng.random(n) >= DROPOUT_SHARE
-    idx = np.flatnonzero(ok)
-    r = hit_range[idx] + rng.normal(0.0, sigma, len(idx))
-    a = refl[idx] + np.abs(rng.normal(0.0, 0.004, len(idx)))
+    idx = np.flatnonzero(np.isfinite(hit_range) & (hit_range > min_range))
+    n = len(idx)
+    mat = material[idx]
+    refl = base[idx] * np.power(np.clip(cos_incidence[idx], 1e-3, 1.0), _EXPONENT[mat])
+    refl *= np.exp(rng.normal(0.0, 0.08, n))
+    noise = rng.standard_normal((3, n))
+    limit = detection_range(refl) * (1.0 + 0.08 * noise[0])
+    r = hit_range[idx]
+    ok = (r < limit) & (rng.random(n) >= DROPOUT_SHARE)
+    idx, refl = idx[ok], refl[ok]
+    r = r[ok] + sigma * noise[1, ok]
+    a = refl + 0.004 * np.abs(noise[2, ok])
     ghost = rng.random(len(idx)) < MULTIPATH_SHARE
     k = int(ghost.sum())
     if k:

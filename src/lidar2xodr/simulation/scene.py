@@ -86,24 +86,25 @@ class WindowScene:
         self.empty = len(sel) == 0
 
     def cast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Range, material, base reflectivity and |cos incidence| of each ray's first hit (inf = none)."""
+        """Range, material, base reflectivity and |cos incidence| of each ray's first hit (inf = none).
+
+        `origins` are relative to this scene's origin; both arrays float32.
+        """
         n = len(origins)
         if self.empty:
             return np.full(n, np.inf), np.zeros(n, np.uint8), np.zeros(n, np.float32), np.ones(n, np.float32)
-        rays = np.empty((n, 6), dtype=np.float32)
-        rays[:, :3] = origins - self.origin
-        rays[:, 3:] = dirs
-        res = self.scene.cast_rays(o3d.core.Tensor(rays))
+        res = self.scene.cast_rays(o3d.core.Tensor(np.concatenate([origins, dirs], axis=1)))
         t = res["t_hit"].numpy().astype(np.float64)
         hit = np.isfinite(t)
         prim = np.where(hit, res["primitive_ids"].numpy(), 0).astype(np.int64)
         normal = res["primitive_normals"].numpy()
-        dot = np.einsum("ij,ij->i", normal, dirs.astype(np.float32))
-        mat = np.where(hit, self.material[prim], 0).astype(np.uint8)
-        base = np.where(hit, self.base[prim], 0).astype(np.float32)
+        dot = np.einsum("ij,ij->i", normal, dirs)
+        mat = self.material[prim]
+        mat[~hit] = 0
+        base = self.base[prim]
         sign = hit & (mat == R.SIGN)
         if sign.any():
-            back = np.einsum("ij,ij->i", self.facing[prim[sign]], dirs[sign].astype(np.float32)) > 0
+            back = np.einsum("ij,ij->i", self.facing[prim[sign]], dirs[sign]) > 0
             k = np.flatnonzero(sign)[back]
             mat[k] = R.STEEL
             base[k] = 0.35

@@ -122,24 +122,32 @@ _LIVOX_F1 = 329.27  # Hz, first prism (per channel slightly detuned below)
 _LIVOX_F2 = -222.84  # Hz, second prism, counter-rotating; f1/f2 irrational-ish: the rosette precesses
 
 
+_LIVOX_CACHE: dict[int, tuple[np.ndarray, ...]] = {}
+
+
 def _livox_rays(p: SensorPreset, t0: float, t_ref: float) -> tuple[np.ndarray, np.ndarray]:
     n = p.rays_per_scan
-    k = np.arange(n)
-    times = t0 + (k + 0.5) * (p.period / n)
-    ch = k % _LIVOX_CHANNELS
-    tau = times - t_ref
-    detune = 1.0 + 0.0137 * ch
-    ph1 = 2 * np.pi * (_LIVOX_F1 * detune * tau + 0.31 * ch)
-    ph2 = 2 * np.pi * (_LIVOX_F2 * detune * tau + 0.17 * ch)
-    re = 0.5 * (np.cos(ph1) + np.cos(ph2))
-    im = 0.5 * (np.sin(ph1) + np.sin(ph2))
+    if n not in _LIVOX_CACHE:
+        k = np.arange(n)
+        ch = k % _LIVOX_CHANNELS
+        dt = (k + 0.5) * (p.period / n)
+        det = 1.0 + 0.0137 * np.arange(_LIVOX_CHANNELS)
+        # phasors of each ray relative to its scan start: the scan start only rotates them per channel
+        z1 = np.exp(2j * np.pi * (_LIVOX_F1 * det[ch] * dt + 0.31 * ch))
+        z2 = np.exp(2j * np.pi * (_LIVOX_F2 * det[ch] * dt + 0.17 * ch))
+        _LIVOX_CACHE[n] = (ch, dt, det, z1, z2)
+    ch, dt, det, z1, z2 = _LIVOX_CACHE[n]
+    tau = t0 - t_ref
+    r1 = np.exp(2j * np.pi * np.mod(_LIVOX_F1 * det * tau, 1.0))
+    r2 = np.exp(2j * np.pi * np.mod(_LIVOX_F2 * det * tau, 1.0))
+    z = 0.5 * (z1 * r1[ch] + z2 * r2[ch])
     half_h = 0.5 * p.fov_h_deg
     lobe = half_h / _LIVOX_CHANNELS * 1.45
     centres = np.linspace(-half_h + lobe * 0.8, half_h - lobe * 0.8, _LIVOX_CHANNELS)
     lo, hi = p.fov_v_deg
-    az = np.radians(np.clip(centres[ch] + lobe * re, -half_h, half_h))
-    el = np.radians(np.clip(0.5 * (lo + hi) + 0.5 * (hi - lo) * 1.04 * im, lo, hi))
-    return _unit(az, el), times
+    az = np.radians(np.clip(centres[ch] + lobe * z.real, -half_h, half_h))
+    el = np.radians(np.clip(0.5 * (lo + hi) + 0.5 * (hi - lo) * 1.04 * z.imag, lo, hi))
+    return _unit(az, el), t0 + dt
 
 
 def pandar64_elevations() -> np.ndarray:

@@ -18,7 +18,8 @@ Decisions:
 - Density (vehicles per km and lane, same direction): low 4, mid 10, high 20; oncoming traffic
   (on two-way roads) half of that. Vehicles live in a window from 350 m behind to 900 m ahead of
   the ego (so they appear and vanish out of sensor range) within the ego's current pass.
-- Classes: car 70 %, van 12 %, truck 15 %, motorcycle 3 %; trucks keep to the two rightmost lanes.
+- Classes: car 70 %, van 12 %, truck 15 %, motorcycle 3 %; trucks keep to the rightmost lane (the two
+  rightmost on roads with three lanes or more) and never overtake.
 """
 
 from __future__ import annotations
@@ -131,9 +132,7 @@ class TrafficSim:
 
     # ------------------------------------------------------------------ spawning
 
-    def _new_vehicle(
-        self, cls: VehicleClass, u: float, lam: float, track: int, sign: int, v_ref: float | None
-    ) -> int:
+    def _new_vehicle(self, cls: VehicleClass, v0: float, u: float, lam: float, track: int, sign: int) -> int:
         p, rng = self.p, self.rng
         i = p.add()
         p.cls.append(cls.name)
@@ -144,8 +143,8 @@ class TrafficSim:
         p.clear[i] = cls.clearance
         p.a_max[i] = cls.a_max * rng.uniform(0.8, 1.2)
         p.headway[i] = cls.headway * rng.uniform(0.8, 1.3)
-        p.v0[i] = max(15.0, rng.normal(*cls.speed_kmh) / 3.6)
-        p.v[i] = p.v0[i] if v_ref is None else min(p.v0[i], v_ref)
+        p.v0[i] = v0
+        p.v[i] = min(v0, self.route.v_limit[self.route.index(u)])
         p.rho[i] = rng.uniform(0.05, 0.7)
         p.aggressive[i] = rng.random() < 0.2 and cls.name != "truck"
         p.wander_a[i] = rng.uniform(0.03, 0.15)
@@ -189,10 +188,13 @@ class TrafficSim:
         tries = int(max(0, want - have)) if initial else min(2, int(max(0, round(want - have))))
         ego_seg = self.segment[r.index(ego_u)]
         for _ in range(tries):
+            cls = CLASSES[int(rng.choice(len(CLASSES), p=[c.share for c in CLASSES]))]
+            v0 = max(15.0, rng.normal(*cls.speed_kmh) / 3.6)
             if initial:
                 u = rng.uniform(lo, hi)
             elif sign > 0:
-                u = hi - rng.uniform(0, 60) if rng.random() < 0.5 else lo + rng.uniform(0, 60)
+                # drivers slower than the ego appear ahead of it, faster ones behind, so the ego meets them
+                u = hi - rng.uniform(0, 60) if v0 < p.v0[0] else lo + rng.uniform(0, 60)
             else:
                 u = hi - rng.uniform(0, 60)
             i = int(r.index(u))
@@ -200,23 +202,15 @@ class TrafficSim:
                 continue
             row = lanes.lam[i]
             slots = np.flatnonzero(~np.isnan(row) & (2 * lanes.half[i] >= 2.6))
+            if cls.name == "truck" and sign > 0:
+                n_keep = 1 if len(slots) <= 2 else 2
+                slots = slots[:n_keep] if self.keep < 0 else slots[-n_keep:]
             if len(slots) == 0:
                 continue
-            cls = CLASSES[int(rng.choice(len(CLASSES), p=[c.share for c in CLASSES]))]
-            if cls.name == "truck" and sign > 0:
-                slots = slots[:2] if self.keep < 0 else slots[-2:]
             k = int(rng.choice(slots))
             if self._occupied(u, row[k], sign, 35.0 if initial else 60.0):
                 continue
-            ahead = u > ego_u
-            v_ref = None
-            if not initial and sign > 0:
-                # slower vehicles appear ahead, faster ones behind (so the ego meets them)
-                v_ref = p.v[0] * (rng.uniform(0.75, 0.98) if ahead else rng.uniform(1.05, 1.3))
-            j = self._new_vehicle(cls, u, row[k], int(lanes.track[i, k]), sign, v_ref)
-            if v_ref is not None:
-                p.v0[j] = v_ref
-                p.v[j] = v_ref
+            self._new_vehicle(cls, v0, u, row[k], int(lanes.track[i, k]), sign)
 
     def _occupied(self, u: float, lam: float, sign: int, gap: float) -> bool:
         p = self.p
@@ -229,7 +223,7 @@ class TrafficSim:
     def run(self, length_m: float) -> Agents:
         r, p, rng = self.route, self.p, self.rng
         self._spawn_ego()
-        end_u = min(length_m, r.length - 1.0)
+        end_u = min(length_m, r.length - 0.5)
         self._fill(0.0, 1, max(0.0, -WINDOW_BEHIND), min(r.length, WINDOW_AHEAD), True)
         self._fill(0.0, -1, 0.0, min(r.length, WINDOW_AHEAD), True)
         rows_u: list[np.ndarray] = []
@@ -449,11 +443,14 @@ class TrafficSim:
                 target = options[0] if options else None
             else:
                 slow = gap[ag] < 70 and vl[ag] < p.v0[ag] - 2.5
+                back_gap, back_v = self._follower(ag)
+                pressed = back_gap < 50 and back_v > p.v[ag] + 1.0
+                right_free = can[right] and self._lane_leader_speed(ag, row, right) >= p.v[ag] - 1.0
                 if slow and can[left] and p.cls[ag] != "truck":
                     target = left
-                elif can[right] and not slow and rng.random() < (0.15 if ego else 0.3):
-                    target = right
-                elif ego and rng.random() < 0.1:
+                elif can[right] and not slow and (pressed or right_free) and rng.random() < (0.3 if ego else 0.5):
+                    target = right  # keep right: yield to faster traffic, return after overtaking
+                elif ego and rng.random() < 0.01:
                     opts = [d for d in (right, left) if can[d]]
                     target = opts[int(rng.integers(len(opts)))] if opts else None
                 elif not ego and p.aggressive[ag] and rng.random() < 0.15:
@@ -482,3 +479,32 @@ class TrafficSim:
         need_back = np.where(~front, (5.0 if aggressive else 10.0) + 3.0 * np.maximum(p.v[o] - p.v[ag], 0), 0)
         return bool(np.all(g >= np.maximum(need_front, need_back)))
 
+
+    def _band(self, ag: int, lam: float, half: float) -> np.ndarray:
+        """Other same-direction agents overlapping the lateral band lam +- half."""
+        p = self.p
+        n = p.n
+        others = np.flatnonzero(p.active[:n] & (p.sign[:n] > 0))
+        others = others[others != ag]
+        return others[np.abs(p.lam[others] - lam) < half + 0.5 * p.width[others]]
+
+    def _follower(self, ag: int) -> tuple[float, float]:
+        """Gap to and speed of the nearest agent behind in the agent's own band."""
+        p = self.p
+        o = self._band(ag, p.lam[ag], 0.5 * p.width[ag])
+        du = p.u[ag] - p.u[o]
+        behind = du > 0
+        if not behind.any():
+            return np.inf, 0.0
+        j = int(np.argmin(np.where(behind, du, np.inf)))
+        return float(du[j] - 0.5 * (p.length[ag] + p.length[o[j]])), float(p.v[o[j]])
+
+    def _lane_leader_speed(self, ag: int, row: int, k: int) -> float:
+        """Speed of the next vehicle ahead (within 120 m) in lane slot k; inf when the lane is free."""
+        p, lanes = self.p, self.route.same
+        o = self._band(ag, lanes.lam[row, k], lanes.half[row, k])
+        du = p.u[o] - p.u[ag]
+        ahead = (du > 0) & (du < 120)
+        if not ahead.any():
+            return np.inf
+        return float(p.v[o[int(np.argmin(np.where(ahead, du, np.inf)))]])
