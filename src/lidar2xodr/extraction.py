@@ -114,7 +114,7 @@ def estimate_mount(xyz: np.ndarray, max_range_m: float = 200.0) -> np.ndarray:
     cfg = ExtractionConfig()
     r = np.linalg.norm(xyz[:, :2], axis=1)
     near = xyz[(r < min(cfg.ransac_range_m, max_range_m)) & (r > 1.0)]
-    low = near[near[:, 2] < np.percentile(near[:, 2], 50)] if len(near) > 100 else near
+    low = near[near[:, 2] <= np.percentile(near[:, 2], 50)] if len(near) > 100 else near
     plane = fit_ground_plane(low, cfg, np.random.default_rng(cfg.seed))
     if plane is None:
         raise InputError("first scan", "cannot find the ground to estimate the sensor mount")

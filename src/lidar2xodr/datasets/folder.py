@@ -33,6 +33,8 @@ _TIME_FILES = ("times.txt", "timestamps.txt")
 
 
 def _kitti_tr(calib: Path) -> np.ndarray | None:
+    if not calib.is_file():
+        return None
     try:
         for line in calib.read_text(encoding="utf-8").splitlines():
             if line.startswith("Tr:"):
