@@ -74,9 +74,12 @@ class MarkingsConfig(_Section):
     line_ransac_iterations: int = Field(32, description="ours: line hypotheses per cluster (vectorised RANSAC)")
     min_direction_length_m: float = Field(1.0, description="ours: clusters shorter than this (or than 3x their "
                                           "width) do not steer SearchMark: their RANSAC direction is noise")
-    segment_tolerance_m: float = Field(0.5, description="ours: point-to-segment distance that adds a missed cluster")
-    search_z_tolerance_m: float = Field(1.0, description="ours: height gate of the ball search (keeps bridges apart)")
-    combine_max_angle_deg: float = Field(30.0, description="ours: candidates meeting at a larger angle are not combined")
+    segment_tolerance_m: float = Field(0.5, description="ours: point-to-segment distance that adds a missed "
+                                       "cluster")
+    search_z_tolerance_m: float = Field(1.0, description="ours: height gate of the ball search (keeps bridges "
+                                        "apart)")
+    combine_max_angle_deg: float = Field(30.0, description="ours: candidates meeting at a larger angle are not "
+                                         "combined")
     max_turn_deg: float = Field(10.0, description="ours: a found cluster whose direction turns the search by more "
                                 "than this keeps the previous direction (stray blobs beside a line)")
     seed: int = Field(0, description="seed of the line RANSAC")

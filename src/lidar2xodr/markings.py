@@ -17,8 +17,9 @@ Decisions the paper leaves open (parameters in `MarkingsConfig`):
   `min_direction_length_m` and 3x its width) and turns the search by less than `max_turn_deg`;
   otherwise the previous direction is kept. A found cluster that is neither elongated nor on the
   line (within `segment_tolerance_m`) joins the chain but the search goes on from the previous
-  centre: blobs beside a line were stepping stones to the neighbouring line. The centre is the box centre of the RANSAC inliers in the line's
-  own frame, so stray points attached to a dash do not move it.
+  centre: blobs beside a line were stepping stones to the neighbouring line. The centre is the
+  box centre of the RANSAC inliers in the line's own frame, so stray points attached to a dash
+  do not move it.
 - SearchMark takes the unvisited centre nearest to the expected point, in the first 3 m step that
   finds one; candidate ids are given in order of the first centre's distance to the origin (the
   paper's random ids would break "same input, same output").
@@ -26,7 +27,9 @@ Decisions the paper leaves open (parameters in `MarkingsConfig`):
   in the last 60 m when available: a 63 m search on a 2 km radius drifts by 1 m otherwise) over
   `combine_search_m`; candidates whose start or end lies on another candidate (point-to-segment)
   and whose overlapping centres all lie on it are merged into it. Both repeat until nothing
-  merges; every result is ordered from its end nearer the origin (DistSort).
+  merges; every result is ordered from its end nearer the origin (DistSort). Terminals sit on a
+  chain's first and last elongated cluster; chains of blobs only are never linked, and only a
+  chain holding an elongated cluster can absorb another (blobs bridged lines otherwise).
 """
 
 from __future__ import annotations
@@ -255,6 +258,7 @@ def search_mark(clusters: Clusters, cfg: MarkingsConfig) -> list[np.ndarray]:
     steps = np.arange(cfg.search_step_m, cfg.search_max_m + 1e-9, cfg.search_step_m)
     visited = np.zeros(n, dtype=bool)
     cos_turn = np.cos(np.radians(cfg.max_turn_deg))
+    strong = _elongated(clusters, cfg)
     chains: list[np.ndarray] = []
     for start in np.argsort(np.linalg.norm(centers[:, :2], axis=1), kind="stable"):
         if visited[start]:
@@ -274,7 +278,7 @@ def search_mark(clusters: Clusters, cfg: MarkingsConfig) -> list[np.ndarray]:
                 visited[i] = True
                 chain.append(int(i))
             own = dirs[found] if float(dirs[found] @ v) >= 0 else -dirs[found]
-            elongated = clusters.lengths[found] >= max(cfg.min_direction_length_m, 3.0 * clusters.widths[found])
+            elongated = bool(strong[found])
             rel = centers[found, :2] - centers[base, :2]
             on_line = abs(float(rel[0] * v[1] - rel[1] * v[0])) <= cfg.segment_tolerance_m
             if not (elongated or on_line):
@@ -337,6 +341,7 @@ class _Terminal:
     point: np.ndarray  # (T, 3)
     out: np.ndarray  # (T, 2) outward unit directions
     predicted: np.ndarray  # (T, D, 2) expected positions along the search
+    valid: np.ndarray  # (T,) False for chains without an elongated cluster
 
 
 def combine(chains: list[np.ndarray], clusters: Clusters, cfg: MarkingsConfig) -> list[np.ndarray]:
@@ -372,19 +377,32 @@ def _chain_dirs(chain: np.ndarray, clusters: Clusters) -> np.ndarray:
 
 
 def _terminals(chains: list[np.ndarray], clusters: Clusters, cfg: MarkingsConfig) -> _Terminal:
-    """Head (index 2k) and tail (2k + 1) of every chain with outward directions and extrapolations."""
+    """Head (index 2k) and tail (2k + 1) of every chain with outward directions and extrapolations.
+
+    Terminals sit on the first and last elongated cluster: a blob at a chain's end (or a chain of
+    blobs, whose terminals are marked invalid) would steer the search off the line.
+    """
     dists = np.arange(cfg.search_step_m, cfg.combine_search_m + 1e-9, cfg.search_step_m)
-    pts, outs, preds = [], [], []
+    strong = _elongated(clusters, cfg)
+    pts, outs, preds, valid = [], [], [], []
     for chain in chains:
-        d = _chain_dirs(chain, clusters)
-        for seq, u in ((chain[::-1], -d[0]), (chain, d[-1])):
+        keep = np.flatnonzero(strong[chain])
+        core = chain[keep[0]:keep[-1] + 1] if len(keep) else chain
+        d = _chain_dirs(core, clusters)
+        for seq, u in ((core[::-1], -d[0]), (core, d[-1])):
             xy = clusters.centers[seq, :2]
             o, p = _extrapolate(xy, u, dists)
             pts.append(clusters.centers[seq[-1]])
             outs.append(o)
             preds.append(p)
+            valid.append(len(keep) > 0)
     return _Terminal(np.array(pts).reshape(-1, 3), np.array(outs).reshape(-1, 2),
-                     np.array(preds).reshape(-1, len(dists), 2))
+                     np.array(preds).reshape(-1, len(dists), 2), np.array(valid, dtype=bool))
+
+
+def _elongated(clusters: Clusters, cfg: MarkingsConfig) -> np.ndarray:
+    """Clusters shaped like a piece of a line (not blobs or specks)."""
+    return clusters.lengths >= np.maximum(cfg.min_direction_length_m, 3.0 * clusters.widths)
 
 
 def _extrapolate(xy: np.ndarray, u: np.ndarray, dists: np.ndarray, span: float = 60.0) -> tuple[np.ndarray, np.ndarray]:
@@ -437,10 +455,10 @@ def _link_terminals(chains: list[np.ndarray], clusters: Clusters, cfg: MarkingsC
     cos_max = np.cos(np.radians(cfg.combine_max_angle_deg))
     dists = np.arange(cfg.search_step_m, cfg.combine_search_m + 1e-9, cfg.search_step_m)
     proposals = []
-    for a in range(len(term.point)):
+    for a in np.flatnonzero(term.valid):
         for k, hits in enumerate(tree.query_ball_point(term.predicted[a], cfg.search_radius_m)):
             hits = np.asarray(hits, dtype=np.int64)
-            hits = hits[hits // 2 != a // 2]
+            hits = hits[(hits // 2 != a // 2) & term.valid[hits]]
             hits = hits[term.out[hits] @ term.out[a] <= -cos_max]
             dz = np.abs(term.point[hits, 2] - term.point[a, 2])
             hits = hits[dz <= cfg.search_z_tolerance_m + 0.1 * dists[k]]
@@ -483,6 +501,7 @@ def _absorb(chains: list[np.ndarray], clusters: Clusters, cfg: MarkingsConfig) -
         return chains
     tree = cKDTree(samples[:, :2])
     uf = _UnionFind(len(chains))
+    strong = _elongated(clusters, cfg)
     result = {i: chains[i] for i in range(len(chains))}
     for b, chain in enumerate(chains):
         for end in (chain[0], chain[-1]):
@@ -494,7 +513,7 @@ def _absorb(chains: list[np.ndarray], clusters: Clusters, cfg: MarkingsConfig) -
             ra, rb = uf.find(a), uf.find(b)
             if ra == rb:
                 continue
-            merged = _merge_overlap(result[ra], result[rb], clusters, cfg)
+            merged = _merge_overlap(result[ra], result[rb], clusters, strong, cfg)
             if merged is not None:
                 uf.union(ra, rb)
                 keep = uf.find(ra)
@@ -522,12 +541,16 @@ def _densify(chains: list[np.ndarray], centers: np.ndarray, step: float) -> tupl
     return np.vstack(pts), np.concatenate(owner)
 
 
-def _merge_overlap(a: np.ndarray, b: np.ndarray, clusters: Clusters, cfg: MarkingsConfig) -> np.ndarray | None:
-    """`a` and `b` as one chain when every centre of `b` beside `a` lies on it; else None."""
+def _merge_overlap(a: np.ndarray, b: np.ndarray, clusters: Clusters, strong: np.ndarray,
+                   cfg: MarkingsConfig) -> np.ndarray | None:
+    """`a` and `b` as one chain when every centre of `b` beside `a` lies on it; else None.
+
+    The longer chain is the host and must hold an elongated cluster (blobs host nothing).
+    """
     if len(a) < len(b):
         a, b = b, a
     ca, cb = clusters.centers[a, :2], clusters.centers[b, :2]
-    if len(a) < 2:
+    if len(a) < 2 or not strong[a].any():
         return None
     da = _chain_dirs(a, clusters)
     db = _chain_dirs(b, clusters) if len(b) > 1 else clusters.directions[b]
