@@ -120,3 +120,12 @@ def test_aimotive_motorway_edge_line_is_straight(shared_data: Path) -> None:
     assert fit["hi"] - fit["lo"] > 100.0 and fit["bins"] >= 20
     assert fit["rms"] < 0.10
     assert fit["max_bin"] < 0.10
+
+
+def test_featureless_scene_warns() -> None:
+    """Only the road and a car driving along: nothing fixes the forward motion, and the report says so."""
+    drive = make_drive(n_scans=6, speed=25.0, n_ground=4000, posts=False, seed=5)
+    rep = ExtractionReport()
+    extract_markings(NoPoses(drive, with_times=True), ExtractionConfig(), report=rep)  # type: ignore[arg-type]
+    assert rep.start_speed_mps is not None and rep.start_speed_mps < 0.5
+    assert any("static" in w for w in rep.warnings)

@@ -60,6 +60,7 @@ class ExtractionReport:
     drive_length_m: float = 0.0
     duration_s: float = 0.0
     wall_s: float = 0.0
+    warnings: list[str] = field(default_factory=list)
 
 
 # --- per-scan filters -------------------------------------------------------------------------
@@ -372,6 +373,9 @@ def extract_markings(
     rep.points_read = dataset.stats.points_read
     rep.dropped_points = dataset.stats.dropped_points
     rep.start_speed_mps = poses.odo.start_speed if poses.odo is not None else None
+    if rep.start_speed_mps is not None and rep.start_speed_mps < 0.5:
+        rep.warnings.append("LiDAR odometry found the scene static at the start (the vehicle stood still, or only "
+                            "traffic and featureless rails were in view): check the drive length")
 
     xyz = np.concatenate(out_xyz) if out_xyz else np.zeros((0, 3))
     inten = np.concatenate(out_int).astype(np.float32) if out_int else np.zeros(0, np.float32)
