@@ -268,6 +268,8 @@ def extract(
               f"{rep.outliers_removed:,} outliers removed; {rep.odometry} poses{speed}, {rep.drive_length_m:.0f} m "
               f"in {rep.duration_s:.1f} s; {rep.points_read / max(rep.wall_s, 1e-9):,.0f} points/s, "
               f"{rtf:.2f}x real time")
+    for warning in rep.warnings:
+        console.print(f"[yellow]warning:[/] {warning}", highlight=False, soft_wrap=True)
 
 
 if __name__ == "__main__":  # pragma: no cover
