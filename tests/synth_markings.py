@@ -244,7 +244,7 @@ def _paint(line: Line, rng: np.random.Generator, density: float, ego_t: float) -
     return np.concatenate(out) if out else np.zeros((0, 2))
 
 
-def _polyline_distance(points: np.ndarray, line: np.ndarray) -> np.ndarray:
+def polyline_distance(points: np.ndarray, line: np.ndarray) -> np.ndarray:
     """Distance of each point to a polyline (inf where its foot falls outside the line)."""
     a, b = line[:-1], line[1:]
     ab = b - a
@@ -274,7 +274,7 @@ def model_lines(model) -> dict[int, list[np.ndarray]]:
     for b in model.boundaries:
         ok = np.isfinite(b.t)
         d = np.diff(np.concatenate([[0], ok.astype(int), [0]]))
-        for a0, a1 in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)):
+        for a0, a1 in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1), strict=False):
             if a1 - a0 >= 2:
                 out.setdefault(b.id, []).append(ref[a0:a1] + nrm[a0:a1] * np.asarray(b.t)[a0:a1, None])
     return out
@@ -294,7 +294,7 @@ def evaluate(model, road: SynthRoad, margin: float = 20.0) -> dict:
         pts = road.line_xy(line, s)
         best = None
         for bid, parts in lines.items():
-            d = np.min([_polyline_distance(pts, p) for p in parts], axis=0)
+            d = np.min([polyline_distance(pts, p) for p in parts], axis=0)
             cov = d < 0.5
             if best is None or cov.mean() > best[1]:
                 best = (bid, float(cov.mean()), d)
@@ -316,7 +316,7 @@ def evaluate(model, road: SynthRoad, margin: float = 20.0) -> dict:
         m = (model.s >= sec.s_start) & (model.s < sec.s_end)
         counts[m] = len(sec.boundary_ids) - 1
         tb = {b.id: np.asarray(b.t) for b in model.boundaries}
-        for left, right in zip(sec.boundary_ids[:-1], sec.boundary_ids[1:]):
+        for left, right in zip(sec.boundary_ids[:-1], sec.boundary_ids[1:], strict=False):
             w = tb[left][m] - tb[right][m]
             mid = ref[m] + nrm[m] * (0.5 * (tb[left][m] + tb[right][m]))[:, None]
             tw = _truth_width(road, mid)
@@ -358,7 +358,7 @@ def _truth_width(road: SynthRoad, xy: np.ndarray) -> np.ndarray:
     out = np.full(len(xy), np.nan)
     for i in range(len(xy)):
         o = np.sort(offs[:, i][np.isfinite(offs[:, i])])[::-1]
-        for a, b in zip(o[:-1], o[1:]):
+        for a, b in zip(o[:-1], o[1:], strict=False):
             if a >= t[i] >= b:
                 out[i] = a - b
                 break
