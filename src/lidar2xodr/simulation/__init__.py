@@ -249,13 +249,14 @@ def _rot_from_rpy(a: np.ndarray) -> np.ndarray:
 
 
 def _closeup_index(ego, traffic, agents) -> int:
-    """Pose index for the preview close-up: where most traffic is just ahead (occlusions), else mid-drive."""
+    """Pose index for the preview close-up: at speed, where most traffic is just ahead (occlusions)."""
     n = len(traffic.start) - 1
     best, best_k = 0, len(ego.pos) // 2
+    speed = np.gradient(ego.u) * ego.hz
     for s in range(0, n, max(1, n // 200)):
         sl = traffic.step(s)
         k = min(int(round(s * 0.1 * ego.hz)), len(ego.pos) - 1)
-        if sl.stop == sl.start:
+        if sl.stop == sl.start or speed[k] < 15.0:
             continue
         d = traffic.centre[sl] - ego.pos[k]
         fwd = d @ ego.rot[k][:, 0]

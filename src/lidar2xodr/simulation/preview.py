@@ -35,18 +35,25 @@ class PreviewCollector:
         self.scale = intensity_scale
         self.stride = max(1, math.ceil(expected_points * 0.5 / MAX_POINTS))
         self.xy: list[np.ndarray] = []
+        self.z: list[np.ndarray] = []
         self.val: list[np.ndarray] = []
 
     def add(self, scan: ScanOut) -> None:
         keep = (scan.height < self.mount_z) & (np.hypot(scan.xyz[:, 0], scan.xyz[:, 1]) < NEAR_M)
         idx = np.flatnonzero(keep)[:: self.stride]
         self.xy.append(scan.world[idx, :2])
+        self.z.append(scan.world[idx, 2].astype(np.float32))
         self.val.append(np.minimum(scan.intensity[idx] / self.scale, 1.2).astype(np.float32))
 
     def points(self) -> tuple[np.ndarray, np.ndarray]:
+        """World xy and reflectivity (1.0 = 100 %) of the kept points."""
         if not self.xy:
             return np.zeros((0, 2)), np.zeros(0, np.float32)
         return np.concatenate(self.xy), np.concatenate(self.val)
+
+    def heights(self) -> np.ndarray:
+        """World z of the kept points."""
+        return np.concatenate(self.z) if self.z else np.zeros(0, np.float32)
 
 
 def _raster(xy: np.ndarray, val: np.ndarray, x0: float, y0: float, px: float, w: int, h: int) -> np.ndarray:

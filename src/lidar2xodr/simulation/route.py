@@ -286,6 +286,7 @@ class Route:
 
     def __post_init__(self) -> None:
         self._leg_u0 = np.array([leg.u0 for leg in self.legs])
+        self._is_turn = np.array([leg.kind == "turn" for leg in self.legs], dtype=bool)
 
     @property
     def length(self) -> float:
@@ -325,7 +326,7 @@ class Route:
         p = self.world(u, lam)
         pu = (self.world(u + eps, lam) - self.world(u - eps, lam)) / (2 * eps)
         pl = (self.world(u, lam + eps) - self.world(u, lam - eps)) / (2 * eps)
-        turn = np.array([self.legs[k].kind == "turn" for k in self.leg_of(u)])
+        turn = self._is_turn[self.leg_of(u)]
         up = np.cross(pu, pl)
         up[turn] = (0.0, 0.0, 1.0)
         up /= np.linalg.norm(up, axis=1, keepdims=True)
