@@ -466,3 +466,9 @@ def test_extract_command_bad_input_is_one_line(tmp_path: Path) -> None:
     assert not (tmp_path / "m.ply").exists()
     res = CliRunner().invoke(app, ["extract", str(tmp_path), "-o", str(tmp_path / "m.ply"), "--odometry", "imu"])
     assert res.exit_code == 2 and "--odometry" in res.output
+
+
+def test_progress_adds_up_to_the_scans(drive_dir: Path) -> None:
+    steps: list[int] = []
+    extract_markings(open_dataset(drive_dir), ExtractionConfig(), progress=steps.append)
+    assert sum(steps) == 12 and all(s >= 1 for s in steps)

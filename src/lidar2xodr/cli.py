@@ -257,7 +257,7 @@ def extract(
     with Progress(TextColumn("extract"), BarColumn(), MofNCompleteColumn(), TextColumn("scans"),
                   TimeRemainingColumn(), console=console, transient=True) as bar:
         task = bar.add_task("extract", total=len(dataset))
-        cloud = extract_markings(dataset, cfg, progress=lambda n: bar.update(task, completed=n), report=rep)
+        cloud = extract_markings(dataset, cfg, progress=lambda n: bar.advance(task, n), report=rep)
     save_markings(cloud, output)
     skipped = f", {len(rep.bad_scans)} skipped" if rep.bad_scans else ""
     dropped = f", {rep.dropped_points:,} non-finite points dropped" if rep.dropped_points else ""

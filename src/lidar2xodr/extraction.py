@@ -281,7 +281,8 @@ def extract_markings(
 ) -> MarkingCloud:
     """Marking points of the whole drive in one world frame (see the module docstring).
 
-    `progress` is called after every scan with the number of scans of the recording passed so far;
+    `progress` is called after every scan with the number of recording scans it advanced by
+    (skipped, unreadable scans included, so the calls add up to `len(dataset)` at most);
     `report`, when given, is filled with counts for the summary line.
     """
     rep = report if report is not None else ExtractionReport()
@@ -301,6 +302,7 @@ def extract_markings(
     plane_rows: list[np.ndarray] = []
     last_time = -np.inf
     flushed = 0
+    reported = 0
     stamp_first = stamp_last = None
 
     def flush(ready: int) -> None:
@@ -360,8 +362,9 @@ def extract_markings(
         if threshold is None and rep.scans_used >= cfg.auto_threshold_scans:
             set_threshold()
         flush(ready)
-        if progress is not None:
-            progress(scan.index + 1)
+        if progress is not None and scan.index + 1 > reported:
+            progress(scan.index + 1 - reported)
+            reported = scan.index + 1
     if len(dataset.stats.bad_scans) > cfg.max_bad_scan_share * rep.scans_total:
         _too_many_bad(dataset, cfg)
     if rep.scans_used == 0:
