@@ -320,7 +320,7 @@ def evaluate(model, road: SynthRoad, margin: float = 20.0) -> dict:
             w = tb[left][m] - tb[right][m]
             mid = ref[m] + nrm[m] * (0.5 * (tb[left][m] + tb[right][m]))[:, None]
             tw = _truth_width(road, mid)
-            ok = np.isfinite(tw) & (tw > 3.0)
+            ok = np.isfinite(tw) & (tw > 3.0) & ~_in_taper(road, _project_base(road, mid), margin)
             widths_err.append(w[ok] - tw[ok])
     valid = np.isfinite(base) & (base > margin) & (base < road.s[-1] - margin)
     truth = road.lane_count(np.where(valid, base, 0.0))
@@ -332,6 +332,14 @@ def evaluate(model, road: SynthRoad, margin: float = 20.0) -> dict:
     res["width_bias"] = float(np.mean(we)) if len(we) else np.nan
     res["width_sigma"] = float(np.std(we)) if len(we) else np.nan
     return res
+
+
+def _in_taper(road: SynthRoad, s: np.ndarray, margin: float) -> np.ndarray:
+    """Base stations where the added lane is opening or closing (its width changes)."""
+    if road.exit_lane is None:
+        return np.zeros(len(s), dtype=bool)
+    s_a, s_b, taper = road.exit_lane
+    return ((s > s_a - margin) & (s < s_a + taper + margin)) | ((s > s_b - taper - margin) & (s < s_b + margin))
 
 
 def _project_base(road: SynthRoad, xy: np.ndarray) -> np.ndarray:

@@ -379,8 +379,10 @@ def _robust_curve(k: np.ndarray, t: np.ndarray, n: int, lam: float,
                   iters: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Robust t(s) on stations: Whittaker over the points' span with Tukey weights; NaN outside.
 
-    Returns the curve, the points' final weights and which stations are observed (3 points or
-    more, in runs of 3 stations or more).
+    Short islands of points (at most 10 m: a dash, a blob) that sit off the curve fitted without
+    them (local refit over +-80 m) are dropped: a blob in a gap or an occluded stretch would
+    otherwise bend the line towards it. Returns the curve, the points' final weights and which stations are observed
+    (3 points or more, in runs of 3 stations or more).
     """
     out = np.full(n, np.nan)
     w_pt = np.ones(len(t))
@@ -391,20 +393,52 @@ def _robust_curve(k: np.ndarray, t: np.ndarray, n: int, lam: float,
     for a, b in _runs(observed):
         if b - a < 3:
             observed[a:b] = False
+    w_pt, scale = _tukey_fit(k, t, w_pt, n, lam, iters)
+    has_points = np.bincount(k, minlength=n) > 0
+    for a, b in _runs(has_points | (np.convolve(has_points, np.ones(3), "same") >= 2)):
+        if b - a > 10:
+            continue
+        island = (k >= a - 2) & (k < b + 2)
+        lo, hi = max(a - 80, 0), min(b + 80, n)
+        near = (k >= lo) & (k < hi) & ~island & (w_pt > 0)
+        if near.sum() < 10:
+            continue
+        z = _whittaker_points(k[near] - lo, t[near], w_pt[near], hi - lo, lam)
+        span = np.flatnonzero(np.isfinite(z))
+        pred = z[np.clip(k[island] - lo, span[0], span[-1])]
+        if abs(float(np.median(t[island] - pred))) > max(0.2, 3.0 * scale):
+            w_pt[island] = 0.0
+            observed[a:b] = False
+    keep = w_pt > 0
+    if keep.sum() < 2:
+        return out, w_pt, observed
+    lo, hi = int(k[keep].min()), int(k[keep].max())
+    out[lo:hi + 1] = _whittaker_points(k[keep] - lo, t[keep], w_pt[keep], hi - lo + 1, lam)
+    return out, w_pt, observed
+
+
+def _whittaker_points(k: np.ndarray, t: np.ndarray, w: np.ndarray, m: int, lam: float) -> np.ndarray:
+    """Whittaker curve through weighted points binned on stations 0..m-1 (NaN outside their span)."""
+    out = np.full(m, np.nan)
     lo, hi = int(k.min()), int(k.max())
     kk = k - lo
-    m = hi - lo + 1
-    z = np.zeros(m)
+    sw = np.bincount(kk, w, hi - lo + 1)
+    st = np.bincount(kk, w * t, hi - lo + 1)
+    out[lo:hi + 1] = _whittaker(np.where(sw > 0, st / np.maximum(sw, 1e-12), 0.0), sw, lam)
+    return out
+
+
+def _tukey_fit(k: np.ndarray, t: np.ndarray, w_pt: np.ndarray, n: int, lam: float,
+               iters: int) -> tuple[np.ndarray, float]:
+    """Iteratively reweighted Whittaker fit: Tukey biweights of the points and the residual scale."""
+    scale = 0.03
     for _ in range(iters):
-        sw = np.bincount(kk, w_pt, m)
-        st = np.bincount(kk, w_pt * t, m)
-        z = _whittaker(np.where(sw > 0, st / np.maximum(sw, 1e-12), 0.0), sw, lam)
-        r = t - z[kk]
+        z = _whittaker_points(k, t, w_pt, n, lam)
+        r = t - z[k]
         scale = max(1.4826 * float(np.median(np.abs(r))), 0.03)
         u = r / (4.685 * scale)
         w_pt = np.where(np.abs(u) < 1, (1 - u**2) ** 2, 0.0)
-    out[lo:hi + 1] = z
-    return out, w_pt, observed
+    return w_pt, scale
 
 
 def _order_along(points: np.ndarray) -> np.ndarray:
@@ -494,22 +528,26 @@ class _Structure:
 
 def _lane_structure(t_fit: np.ndarray, support: np.ndarray, t_ego: np.ndarray | None, step: float,
                     w_lane: float, cfg: LanesConfig) -> _Structure:
-    """Which boundaries form the carriageway at each station, with tapers followed to zero width."""
-    b_n, m = t_fit.shape
-    t = t_fit.copy()
-    on = np.isfinite(t)
-    notes: list[str] = []
-    tol = cfg.same_line_tolerance_m
+    """Which boundaries form the carriageway at each station, with tapers followed to zero width.
+
+    Two rounds: the extensions found in the first (tapers, lines carried to the drive's ends) are
+    measured lines in the second, which decides presence again from scratch, so a line dropped
+    only because its neighbour had not been carried yet comes back.
+    """
     rank = np.argsort(np.argsort(-support, kind="stable"), kind="stable")
     min_run = max(int(round(cfg.min_section_length_m / step)), 1)
-    _drop_duplicates(t, on, rank, tol, min_run)
-    for _ in range(3):
-        on = _choose_carriageway(t, on, t_ego, cfg)
-        on, _ = _check_adjacency(t, on, rank, step, cfg)
-        on = _clean_runs(on, min_run)
-    t, on = _follow_tapers(t, on, step, w_lane, cfg)
-    t = np.where(on, t, np.nan)
-    return _Structure(on, t, notes)
+    t = t_fit.copy()
+    on = np.isfinite(t)
+    for _ in range(2):
+        on = np.isfinite(t)
+        _drop_duplicates(t, on, rank, cfg.same_line_tolerance_m, min_run)
+        for _ in range(3):
+            on = _choose_carriageway(t, on, t_ego, cfg)
+            on, _ = _check_adjacency(t, on, rank, step, cfg)
+            on = _clean_runs(on, min_run)
+        t_ext, on = _follow_tapers(t, on, step, w_lane, cfg)
+        t = np.where(on, t_ext, t)
+    return _Structure(on, np.where(on, t, np.nan), [])
 
 
 def _drop_duplicates(t: np.ndarray, on: np.ndarray, rank: np.ndarray, tol: float, min_run: int) -> None:
@@ -656,17 +694,18 @@ def _follow_tapers(t: np.ndarray, on: np.ndarray, step: float, w_lane: float,
 
 
 def _hold_to(t: np.ndarray, on: np.ndarray, b: int, start: int, end: int) -> None:
-    """Carry boundary b from `start` to the road's end `end` at a constant offset from its nearest neighbour.
+    """Carry boundary b from `start` to the road's end `end` at a constant offset from a neighbour.
 
-    Lines start late or end early near the ends of a drive because they were not yet (or no
-    longer) observed, not because the lane count changes.
+    The neighbour is the nearest of those that reach furthest towards the end. Lines start late or
+    end early near the ends of a drive because they were not yet (or no longer) observed, not
+    because the lane count changes.
     """
-    others = [j for j in range(len(t)) if j != b and on[j, start]]
-    if not others:
-        return
-    nb = min(others, key=lambda j: abs(t[j, start] - t[b, start]))
-    offset = t[b, start] - t[nb, start]
     span = np.arange(end, start) if end < start else np.arange(start + 1, end + 1)
+    others = [j for j in range(len(t)) if j != b and on[j, start]]
+    if not others or len(span) == 0:
+        return
+    nb = max(others, key=lambda j: (round(float(on[j, span].mean()), 1), -abs(t[j, start] - t[b, start])))
+    offset = t[b, start] - t[nb, start]
     span = span[on[nb, span] & ~on[b, span]]
     t[b, span] = t[nb, span] + offset
     on[b, span] = True
@@ -705,9 +744,9 @@ def _extend(t: np.ndarray, on: np.ndarray, b: int, start: int, inward: int, prob
     previous = w0
     for i in range(1, reach + 1):
         k = start - inward * i
-        if k < 0 or k >= t.shape[1] or on[b, k] or not on[grow, k]:
+        if k < 0 or k >= t.shape[1] or on[b, k] or not np.isfinite(t[grow, k]):
             return True
-        if other is not None and on[other, k]:
+        if other is not None and np.isfinite(t[other, k]):
             tk = t[other, k] + (tb - t[other, start])
         elif other is None:
             tk = t[grow, k] - sign * max(w0 - slope * i, 0.0)

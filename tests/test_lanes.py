@@ -1,0 +1,249 @@
+"""Alg. 2 and beyond: lookups, superlines, lane count, widths, boundaries, sections, lanes.json."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from synth_markings import SynthRoad, arc, clothoid, evaluate, make_road, model_lines, straight
+
+from lidar2xodr.config import LanesConfig, MarkingsConfig
+from lidar2xodr.data import Candidate, LaneModel
+from lidar2xodr.errors import InputError
+from lidar2xodr.lanes import (
+    build_lane_model,
+    candidate_segments,
+    global_lookup,
+    lane_step,
+    load_lanes,
+    marking_widths,
+    relative_lookups,
+    save_lanes,
+)
+from lidar2xodr.markings import find_candidates
+
+LCFG = LanesConfig()
+MCFG = MarkingsConfig()
+
+
+def _build(road: SynthRoad) -> LaneModel:
+    return build_lane_model(road.cloud, find_candidates(road.cloud.xyz, MCFG), LCFG)
+
+
+@pytest.fixture(scope="module")
+def curved() -> tuple[SynthRoad, LaneModel]:
+    """Three 3.75 m lanes through a clothoid into R = 2000 m, GNSS noise, occlusions, strays, a guard rail."""
+    road = make_road([straight(250.0), clothoid(150.0, 0.0, 1 / 2000), arc(500.0, 2000.0)], gnss_noise=0.05,
+                     occlusions=8, guard_rail=12.0, seed=11)
+    return road, _build(road)
+
+
+@pytest.fixture(scope="module")
+def exit_lane() -> tuple[SynthRoad, LaneModel]:
+    """A lane added on the right along 120 m tapers (solid edge moves out, a broken line stays)."""
+    road = make_road([straight(400.0), arc(800.0, -3000.0)], lane_widths=(3.5, 3.75), exit_lane=(400.0, 850.0, 120.0),
+                     gnss_noise=0.05, seed=12)
+    return road, _build(road)
+
+
+def _lines(c: float, ys: list[float], n: int = 30, step: float = 18.0) -> list[Candidate]:
+    """Straight candidates along x at lateral positions ys (one per line)."""
+    out = []
+    for i, y in enumerate(ys):
+        x = c + step * np.arange(n)
+        out.append(Candidate(i, np.column_stack([x, np.full(n, y), np.zeros(n)]), np.tile([1.0, 0.0], (n, 1)),
+                             np.arange(n)))
+    return out
+
+
+def test_relative_lookups_measure_the_spacing_left_and_right() -> None:
+    cands = _lines(10.0, [3.6, 0.0, -3.6])
+    lk = relative_lookups(candidate_segments(cands), LCFG)
+    from_mid = lk.cand_a == 1
+    left = from_mid & (lk.cand_b == 0)
+    right = from_mid & (lk.cand_b == 2)
+    assert left.sum() == right.sum() == 29
+    assert np.allclose(lk.dist[left], 3.6) and np.allclose(lk.dist[right], -3.6)
+    outer = (lk.cand_a == 0) & (lk.cand_b == 2)
+    assert np.allclose(lk.dist[outer], -7.2)
+    assert lane_step(lk, LCFG) == pytest.approx(3.6)
+
+
+def test_global_lookup_joins_pieces_beside_a_shared_neighbour() -> None:
+    cands = _lines(10.0, [3.6, 0.0], n=60)
+    # the right line is seen in two pieces with a 200 m gap; a third piece sits one lane further right
+    pieces = [(0, 15, -3.6), (26, 60, -3.6), (10, 40, -7.2)]
+    for k, (a, b, y) in enumerate(pieces):
+        x = 10.0 + 18.0 * np.arange(a, b)
+        cands.append(Candidate(2 + k, np.column_stack([x, np.full(len(x), y), np.zeros(len(x))]),
+                               np.tile([1.0, 0.0], (len(x), 1)), np.arange(len(x))))
+    lk = relative_lookups(candidate_segments(cands), LCFG)
+    sl = global_lookup(len(cands), lk, lane_step(lk, LCFG), LCFG)
+    assert sl[2] == sl[3], "two pieces of one line form one superline"
+    assert len({sl[0], sl[1], sl[2], sl[4]}) == 4
+
+
+def test_straight_road_lanes_widths_and_marks() -> None:
+    road = make_road([straight(800.0)], lane_widths=(3.5, 3.75, 3.75), gnss_noise=0.05, seed=13)
+    model = _build(road)
+    res = evaluate(model, road)
+    assert [len(sec.boundary_ids) - 1 for sec in model.sections] == [3]
+    assert res["rmse"] < 0.05
+    assert abs(res["width_bias"]) < 0.05 and res["width_sigma"] < 0.05
+    kinds = [b.mark_type for b in model.boundaries]
+    assert kinds == ["solid", "broken", "broken", "solid"]
+    for b in model.boundaries:
+        assert b.mark_width == pytest.approx(0.30 if b.mark_type == "solid" else 0.15, abs=0.05)
+        if b.mark_type == "broken":
+            assert b.dash_length == pytest.approx(6.0, abs=0.5) and b.gap_length == pytest.approx(12.0, abs=0.5)
+    # ids run left to right, offsets are measured from the road centre
+    t_mid = [float(np.nanmedian(b.t)) for b in model.boundaries]
+    assert t_mid == sorted(t_mid, reverse=True)
+    assert abs(t_mid[0] + t_mid[-1]) < 0.05
+
+
+def test_curved_road_boundaries_within_5_cm(curved: tuple[SynthRoad, LaneModel]) -> None:
+    road, model = curved
+    res = evaluate(model, road)
+    for name, line in res["lines"].items():
+        assert line["coverage"] > 0.98, name
+        assert line["rmse"] < 0.05, name
+    assert res["lane_count_ok"] > 0.99
+    assert abs(res["width_bias"]) < 0.05 and res["width_sigma"] < 0.05
+    # the reference is a smooth curve: curvature stays near the road's (1/2000) everywhere
+    xy = model.reference[:, :2]
+    d1, d2 = np.gradient(xy, model.s, axis=0), None
+    d2 = np.gradient(d1, model.s, axis=0)
+    kappa = (d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]) / np.linalg.norm(d1, axis=1) ** 3
+    assert np.max(np.abs(kappa[5:-5])) < 2e-3
+
+
+def test_guard_rail_far_outside_is_ignored_with_a_warning(curved: tuple[SynthRoad, LaneModel]) -> None:
+    road, model = curved
+    assert all(len(sec.boundary_ids) == 4 for sec in model.sections)
+    assert any("ignored" in w for w in model.warnings)
+    rail_t = [float(np.nanmedian(b.t)) for b in model.boundaries]
+    assert min(rail_t) > -7.0
+
+
+def test_candidates_know_their_superline(curved: tuple[SynthRoad, LaneModel]) -> None:
+    _, model = curved
+    ids = {b.id for b in model.boundaries}
+    long = [c for c in model.candidates if len(c.centers) > 10]
+    assert all(c.superline in ids or c.superline == -1 for c in model.candidates)
+    assert sum(c.superline in ids for c in long) >= 4
+
+
+def test_added_lane_sections_grow_from_zero(exit_lane: tuple[SynthRoad, LaneModel]) -> None:
+    road, model = exit_lane
+    counts = [len(sec.boundary_ids) - 1 for sec in model.sections]
+    assert counts == [2, 3, 2]
+    # section changes where the lane opens and closes (base stations 400 and 850)
+    ref0 = model.reference[0, :2]
+    s_a, s_b = 400.0 - ref0[0] + 5.0, 850.0 - ref0[0] + 5.0
+    assert model.sections[1].s_start == pytest.approx(s_a, abs=15.0)
+    assert model.sections[1].s_end == pytest.approx(s_b, abs=15.0)
+    # the new boundary starts and ends on its neighbour: width zero at both ends
+    ids = model.sections[1].boundary_ids
+    new = set(ids) - set(model.sections[0].boundary_ids)
+    assert len(new) == 1
+    t = {b.id: b.t for b in model.boundaries}
+    j = ids.index(new.pop())
+    sec = model.sections[1]
+    for k in (np.searchsorted(model.s, sec.s_start), np.searchsorted(model.s, sec.s_end) - 1):
+        widths = [abs(t[ids[j]][k] - t[ids[j + d]][k]) for d in (-1, 1)]
+        assert min(widths) < 0.1
+    res = evaluate(model, road)
+    assert res["lane_count_ok"] > 0.95
+    assert res["rmse"] < 0.05
+    assert res["lines"]["exit"]["coverage"] > 0.95
+    marks = {b.id: b for b in model.boundaries}
+    exit_line = marks[ids[-2]]
+    assert exit_line.mark_type == "broken" and exit_line.gap_length == pytest.approx(6.0, abs=0.5)
+    assert any("lane count changes" in w for w in model.warnings)
+
+
+def test_four_lanes_sparse_and_occluded() -> None:
+    road = make_road([straight(200.0), clothoid(150.0, 0.0, -1 / 1000), arc(300.0, -1000.0)],
+                     lane_widths=(3.5, 3.5, 3.75, 3.75), density=100.0, occlusions=16, ego_lane=0, seed=14)
+    model = _build(road)
+    res = evaluate(model, road)
+    assert {len(sec.boundary_ids) - 1 for sec in model.sections} == {4}
+    assert res["rmse"] < 0.05
+    assert min(line["coverage"] for line in res["lines"].values()) > 0.98
+
+
+def test_single_line_and_empty_input_are_errors() -> None:
+    road = make_road([straight(300.0)], lane_widths=(3.75,), ego_lane=0, occlusions=0, spurious=0, blobs=0)
+    one = road.cloud.xyz[road.cloud.xyz[:, 1] > 2.0]
+    cloud = road.cloud
+    cloud_one = type(cloud)(one, np.ones(len(one), np.float32), np.zeros(len(one), np.int32), np.zeros(len(one)),
+                            cloud.planes, cloud.trajectory)
+    with pytest.raises(InputError, match="single line"):
+        build_lane_model(cloud_one, find_candidates(one, MCFG), LCFG)
+    with pytest.raises(InputError, match="no candidate"):
+        build_lane_model(cloud, [], LCFG)
+    empty = type(cloud)(np.zeros((0, 3)), np.zeros(0, np.float32), np.zeros(0, np.int32), np.zeros(0),
+                        cloud.planes, cloud.trajectory)
+    with pytest.raises(InputError, match="no marking points"):
+        build_lane_model(empty, [], LCFG, where="drive.ply")
+
+
+def test_marking_width_unmixes_paint_and_noise() -> None:
+    rng = np.random.default_rng(0)
+    res = [rng.uniform(-w / 2, w / 2, 4000) + rng.normal(0.0, 0.04, 4000) for w in (0.30, 0.15, 0.30)]
+    res.append(rng.uniform(-0.075, 0.075, 200) + rng.normal(0.0, 0.04, 200))
+    widths = marking_widths(res)
+    assert widths[0] == pytest.approx(0.30, abs=0.03) and widths[2] == pytest.approx(0.30, abs=0.03)
+    assert widths[1] == pytest.approx(0.15, abs=0.03) and widths[3] == pytest.approx(0.15, abs=0.05)
+    assert marking_widths([np.zeros(5)]) == [None]
+
+
+def test_same_input_same_bytes(curved: tuple[SynthRoad, LaneModel], tmp_path: Path) -> None:
+    road, model = curved
+    again = _build(road)
+    save_lanes(model, tmp_path / "a.json")
+    save_lanes(again, tmp_path / "b.json")
+    assert (tmp_path / "a.json").read_bytes() == (tmp_path / "b.json").read_bytes()
+
+
+def test_save_load_round_trip(exit_lane: tuple[SynthRoad, LaneModel], tmp_path: Path) -> None:
+    _, model = exit_lane
+    path = tmp_path / "lanes.json"
+    save_lanes(model, path)
+    back = load_lanes(path)
+    assert np.array_equal(back.s, model.s) and np.array_equal(back.reference, model.reference)
+    for a, b in zip(model.boundaries, back.boundaries, strict=True):
+        assert a.id == b.id and a.mark_type == b.mark_type and a.mark_width == b.mark_width
+        assert a.dash_length == b.dash_length and a.gap_length == b.gap_length
+        assert np.array_equal(a.t, b.t, equal_nan=True)
+    assert [vars(s) for s in back.sections] == [vars(s) for s in model.sections]
+    assert len(back.candidates) == len(model.candidates)
+    assert all(np.array_equal(a.centers, b.centers) and a.superline == b.superline
+               for a, b in zip(model.candidates, back.candidates, strict=True))
+    assert back.warnings == model.warnings
+    assert model_lines(back).keys() == model_lines(model).keys()
+
+
+def test_load_rejects_malformed_files(exit_lane: tuple[SynthRoad, LaneModel], tmp_path: Path) -> None:
+    path = tmp_path / "lanes.json"
+    with pytest.raises(InputError, match="not found"):
+        load_lanes(path)
+    path.write_text("{not json")
+    with pytest.raises(InputError, match="cannot read"):
+        load_lanes(path)
+    path.write_text(json.dumps({"format": "something else"}))
+    with pytest.raises(InputError, match="not a lane model"):
+        load_lanes(path)
+    save_lanes(exit_lane[1], path)
+    data = json.loads(path.read_text())
+    data["boundaries"][1]["t"] = data["boundaries"][1]["t"][:-3]
+    path.write_text(json.dumps(data))
+    with pytest.raises(InputError, match="boundary 1"):
+        load_lanes(path)
+    del data["sections"]
+    path.write_text(json.dumps(data))
+    with pytest.raises(InputError):
+        load_lanes(path)
