@@ -30,8 +30,14 @@ class ScanOut:
     t: np.ndarray  # (M,) float64, absolute
     material: np.ndarray  # (M,) uint8 (ground truth label, not written)
     vehicle: np.ndarray  # (M,) int32 agent column hit, -1 for the static world
-    world: np.ndarray  # (M, 3) float64, true world position of the point
+    local: np.ndarray  # (M, 3) float32, true position of the point relative to `origin`
+    origin: np.ndarray  # (3,) float64
     height: np.ndarray  # (M,) float32, height above the vehicle frame's origin (vehicle z)
+
+    @property
+    def world(self) -> np.ndarray:
+        """(M, 3) float64 true world positions."""
+        return self.local.astype(np.float64) + self.origin
 
 
 class Lidar:
@@ -76,26 +82,27 @@ class Lidar:
         w = ((times - t0) / p.period).astype(np.float32)[:, None]
         o0 = p0 + r0 @ self.mount_pos - scene.origin
         o1 = p1 + r1 @ self.mount_pos - scene.origin
-        origins = (o0.astype(np.float32) + w * (o1 - o0).astype(np.float32))
-        d_veh = (dirs_s @ self.mount_rot.T).astype(np.float32)
-        dirs = d_veh @ r0.T.astype(np.float32) + w * (d_veh @ (r1 - r0).T.astype(np.float32))
+        origins = o0.astype(np.float32) + w * (o1 - o0).astype(np.float32)
+        a = (r0 @ self.mount_rot).T.astype(np.float32)
+        b = ((r1 - r0) @ self.mount_rot).T.astype(np.float32)
+        dirs = dirs_s @ a + w * (dirs_s @ b)
         rng_hit, mat, base, cos_inc = scene.cast(origins, dirs)
         vehicle = np.full(len(times), -1, dtype=np.int32)
-        self._traffic(n, t0, w[:, 0], origins, dirs, scene.origin, rng_hit, mat, base, cos_inc, vehicle)
+        self._traffic(n, w[:, 0], origins, dirs, scene.origin, rng_hit, mat, base, cos_inc, vehicle)
         ret = R.returns(rng_hit, mat, base, cos_inc, p.detection_range, p.min_range_m, p.range_sigma_m, self.rng)
-        i, r = ret.index, ret.rng_m
-        xyz = (dirs_s[i] * r[:, None]).astype(np.float32)
-        local = origins[i].astype(np.float64) + dirs[i].astype(np.float64) * r[:, None]
-        wi = w[i].astype(np.float64)
-        ground = (p0 - scene.origin) + wi * (p1 - p0)
-        up = r0[:, 2] + wi * (r1[:, 2] - r0[:, 2])
-        height = np.einsum("ij,ij->i", local - ground, up).astype(np.float32)
-        return ScanOut(xyz, R.to_raw(ret.reflectivity, p.intensity_scale), times[i], mat[i], vehicle[i],
-                       local + scene.origin, height)
+        i = ret.index
+        r = ret.rng_m.astype(np.float32)[:, None]
+        local = origins[i] + dirs[i] * r
+        wi = w[i]
+        ground = (p0 - scene.origin).astype(np.float32) + wi * (p1 - p0).astype(np.float32)
+        up = r0[:, 2].astype(np.float32) + wi * (r1[:, 2] - r0[:, 2]).astype(np.float32)
+        height = np.einsum("ij,ij->i", local - ground, up)
+        return ScanOut(dirs_s[i] * r, R.to_raw(ret.reflectivity, p.intensity_scale), times[i], mat[i], vehicle[i],
+                       local, scene.origin, height)
 
-    def _traffic(self, n: int, t0: float, w: np.ndarray, origins: np.ndarray, dirs: np.ndarray,
-                 shift: np.ndarray, rng_hit: np.ndarray, mat: np.ndarray, base: np.ndarray,
-                 cos_inc: np.ndarray, vehicle: np.ndarray) -> None:
+    def _traffic(self, n: int, w: np.ndarray, origins: np.ndarray, dirs: np.ndarray, shift: np.ndarray,
+                 rng_hit: np.ndarray, mat: np.ndarray, base: np.ndarray, cos_inc: np.ndarray,
+                 vehicle: np.ndarray) -> None:
         """Intersect the rays with the traffic boxes, each box moving linearly through the scan."""
         tp, ag = self.traffic, self.agents
         if n + 1 >= len(tp.start):
@@ -109,11 +116,9 @@ class Lidar:
         c1 = c0 + tp.velocity[now] * self.p.period
         if n + 2 < len(tp.start):
             nxt = tp.step(n + 1)
-            pos_next = {int(c): j for j, c in enumerate(tp.agent[nxt])}
-            for j, c in enumerate(cols):
-                q = pos_next.get(int(c))
-                if q is not None:
-                    c1[j] = tp.centre[nxt][q] - shift
+            nxt_cols = tp.agent[nxt]
+            j, q = np.nonzero(cols[:, None] == nxt_cols[None, :])
+            c1[j] = tp.centre[nxt][q] - shift
         size = ag.size[cols]
         clear = ag.clearance[cols]
         half = np.column_stack([0.5 * size[:, 0], 0.5 * size[:, 1], 0.5 * (size[:, 2] - clear)])
@@ -122,18 +127,27 @@ class Lidar:
         vec = 0.5 * (c0 + c1) - mid
         dist = np.linalg.norm(vec, axis=1)
         radius = np.linalg.norm(half, axis=1) + np.linalg.norm(c1 - c0, axis=1) + span + 0.2
-        near = np.flatnonzero(dist - radius < self.p.max_range_m)
+        unit = vec / np.maximum(dist, 1e-9)[:, None]
+        ang = np.arcsin(np.minimum(1.0, radius / np.maximum(dist, 1e-9)))
+        cos_lim = np.where(dist <= radius, -2.0, np.cos(ang))
+        # keep boxes within range whose angular disc meets the cone of this scan's rays
+        axis = dirs.mean(axis=0).astype(np.float64)
+        norm = float(np.linalg.norm(axis))
+        if norm > 0.3:
+            axis /= norm
+            spread = np.arccos(np.clip(float(np.min(dirs @ axis.astype(np.float32))), -1.0, 1.0))
+            view = np.arccos(np.clip(unit @ axis, -1.0, 1.0)) <= spread + ang
+        else:
+            view = np.ones(len(unit), dtype=bool)
+        near = np.flatnonzero((dist - radius < self.p.max_range_m) & (view | (dist <= radius)))
         if len(near) == 0:
             return
-        unit = (vec[near] / np.maximum(dist[near], 1e-9)[:, None]).astype(np.float32)
-        cos_lim = np.cos(np.arcsin(np.minimum(1.0, radius[near] / np.maximum(dist[near], 1e-9))))
-        cos_lim[dist[near] <= radius[near]] = -2.0
-        inside = (dirs @ unit.T) > cos_lim.astype(np.float32)[None, :]
+        inside = (dirs @ unit[near].T.astype(np.float32)) > cos_lim[near].astype(np.float32)[None, :]
         for col, j in enumerate(near):
             cand = np.flatnonzero(inside[:, col])
             if len(cand) == 0:
                 continue
-            ww = w[cand, None].astype(np.float64)
+            ww = w[cand, None].astype(np.float64)  # box motion and slab test in float64
             centre = c0[j] + ww * (c1[j] - c0[j])
             cy, sy = np.cos(yaw[j]), np.sin(yaw[j])
             rel = origins[cand] - centre

@@ -32,6 +32,8 @@ _BASE = np.array([0.08, 0.8, 0.62, 0.32, 0.2, 0.3, 0.35, 3.0, 0.3, 2.0, 0.6])
 _SPREAD = np.array([0.18, 0.1, 0.1, 0.25, 0.2, 0.15, 0.15, 0.1, 0.0, 0.1, 0.1])
 _EXPONENT = np.array([0.6, 0.1, 0.1, 0.8, 0.7, 0.7, 0.5, 0.0, 0.7, 0.0, 0.5])
 
+_EXPONENT32 = _EXPONENT.astype(np.float32)
+
 MULTIPATH_SHARE = 0.003
 DROPOUT_SHARE = 0.005
 
@@ -75,16 +77,16 @@ def returns(
     idx = np.flatnonzero(np.isfinite(hit_range) & (hit_range > min_range))
     n = len(idx)
     mat = material[idx]
-    refl = base[idx] * np.power(np.clip(cos_incidence[idx], 1e-3, 1.0), _EXPONENT[mat])
-    refl *= np.exp(rng.normal(0.0, 0.08, n))
-    noise = rng.standard_normal((3, n))
+    refl = base[idx] * np.power(np.clip(cos_incidence[idx], 1e-3, 1.0), _EXPONENT32[mat])
+    noise = rng.standard_normal((4, n), dtype=np.float32)
+    refl *= np.exp(0.08 * noise[3])
     limit = detection_range(refl) * (1.0 + 0.08 * noise[0])
     r = hit_range[idx]
-    ok = (r < limit) & (rng.random(n) >= DROPOUT_SHARE)
+    ok = (r < limit) & (rng.random(n, dtype=np.float32) >= DROPOUT_SHARE)
     idx, refl = idx[ok], refl[ok]
     r = r[ok] + sigma * noise[1, ok]
     a = refl + 0.004 * np.abs(noise[2, ok])
-    ghost = rng.random(len(idx)) < MULTIPATH_SHARE
+    ghost = rng.random(len(idx), dtype=np.float32) < MULTIPATH_SHARE
     k = int(ghost.sum())
     if k:
         r[ghost] += rng.uniform(0.5, 20.0, k)

@@ -61,7 +61,7 @@ class SensorPreset:
         return np.minimum(r, self.max_range_m)
 
     def rays(self, t0: float, t_ref: float) -> tuple[np.ndarray, np.ndarray]:
-        """Unit ray directions (N, 3) float64 in the sensor frame and their absolute times (N,).
+        """Unit ray directions (N, 3) float32 in the sensor frame and their absolute times (N,) float64.
 
         `t0` is the scan start; `t_ref` the drive start (the pattern phase is counted from it so
         float64 keeps full precision).
@@ -176,5 +176,11 @@ def _pandar_rays(p: SensorPreset, t0: float, t_ref: float) -> tuple[np.ndarray, 
 
 
 def _unit(az: np.ndarray, el: np.ndarray) -> np.ndarray:
+    """Unit vectors (float32: ample for directions, and twice as fast) from azimuth and elevation."""
+    az, el = az.astype(np.float32), el.astype(np.float32)
     ce = np.cos(el)
-    return np.stack([ce * np.cos(az), ce * np.sin(az), np.sin(el)], axis=1)
+    out = np.empty((len(az), 3), dtype=np.float32)
+    out[:, 0] = ce * np.cos(az)
+    out[:, 1] = ce * np.sin(az)
+    out[:, 2] = np.sin(el)
+    return out
