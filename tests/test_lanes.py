@@ -247,3 +247,26 @@ def test_load_rejects_malformed_files(exit_lane: tuple[SynthRoad, LaneModel], tm
     path.write_text(json.dumps(data))
     with pytest.raises(InputError):
         load_lanes(path)
+
+
+def test_lanes_command_writes_model_and_report(exit_lane: tuple[SynthRoad, LaneModel], tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from lidar2xodr.cli import app
+    from lidar2xodr.markings_io import save_markings
+
+    road, model = exit_lane
+    save_markings(road.cloud, tmp_path / "markings.ply")
+    runner = CliRunner()
+    res = runner.invoke(app, ["lanes", str(tmp_path / "markings.ply"), "-o", str(tmp_path / "lanes.json"),
+                              "--report", str(tmp_path / "rep")])
+    assert res.exit_code == 0, res.output
+    back = load_lanes(tmp_path / "lanes.json")
+    assert [len(s.boundary_ids) for s in back.sections] == [len(s.boundary_ids) for s in model.sections]
+    pngs = sorted(p.name for p in (tmp_path / "rep").iterdir())
+    assert "lanes.png" in pngs and any(p.startswith("lanes_detail_") for p in pngs)
+    assert (tmp_path / "rep" / "lanes.png").read_bytes()[:4] == b"\x89PNG"
+    res = runner.invoke(app, ["lanes", str(tmp_path / "missing.ply"), "-o", str(tmp_path / "x.json")])
+    assert res.exit_code == 2
+    assert "missing.ply" in res.output and "Traceback" not in res.output
+    assert not (tmp_path / "x.json").exists()

@@ -272,5 +272,38 @@ def extract(
         console.print(f"[yellow]warning:[/] {warning}", highlight=False, soft_wrap=True)
 
 
+@app.command()
+@_clean_errors
+def lanes(
+    markings: Path = typer.Argument(..., help="The marking cloud (markings.ply with its sidecars, from extract)."),
+    output: Path = typer.Option(..., "--output", "-o", help="The lane model to write (lanes.json)."),
+    report: Path | None = typer.Option(None, "--report", help="Write bird's-eye pictures (PNG) into this folder."),
+    config: Path | None = ConfigOpt,
+) -> None:
+    """Lanes from markings alone (paper Alg. 1 and 2): candidates, superlines, boundaries, sections."""
+    from lidar2xodr.config import Config
+    from lidar2xodr.lanes import build_lane_model, save_lanes
+    from lidar2xodr.markings import find_candidates
+    from lidar2xodr.markings_io import load_markings
+
+    cfg = Config.load(config)
+    cloud = load_markings(markings)
+    if len(cloud.xyz) == 0:
+        raise InputError(markings, "the marking cloud is empty")
+    candidates = find_candidates(cloud.xyz, cfg.markings)
+    model = build_lane_model(cloud, candidates, cfg.lanes, where=str(markings))
+    save_lanes(model, output)
+    counts = ", ".join(f"{len(sec.boundary_ids) - 1} from {sec.s_start:.0f} m" for sec in model.sections)
+    out.print(f"wrote {output}: {model.s[-1]:.0f} m of road, {len(candidates)} candidates, "
+              f"{len(model.boundaries)} boundaries, lanes {counts}", highlight=False)
+    if report is not None:
+        from lidar2xodr.lanes_report import write_lanes_report
+
+        for path in write_lanes_report(cloud, model, report):
+            out.print(f"wrote {path}", highlight=False)
+    for warning in model.warnings:
+        console.print(f"[yellow]warning:[/] {warning}", highlight=False, soft_wrap=True)
+
+
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(app())
