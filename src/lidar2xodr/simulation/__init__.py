@@ -129,13 +129,16 @@ def simulate(map_path: str | Path, out_dir: str | Path, opts: SimOptions | None 
 
     total_points = 0
     seen_ids: set[int] = set()
-    obj_rows: list[tuple] = []
-    truth_rows: list[tuple] = []
     with atomic_dir(out_dir) as tmp:
         (tmp / "scans").mkdir()
+        (tmp / "truth").mkdir()
         col = PreviewCollector(preset.mount_xyz[2], preset.intensity_scale, n_scans * preset.rays_per_scan)
         bag = W.BagWriter(tmp, geo.ok) if opts.rosbag else None
-        with _progress(console) as progress:
+        with _progress(console) as progress, \
+                open(tmp / "objects.csv", "w", encoding="utf-8", newline="\n") as f_obj, \
+                open(tmp / "truth" / "objects.csv", "w", encoding="utf-8", newline="\n") as f_truth:
+            f_obj.write(W.OBJECT_HEADER + "\n")
+            f_truth.write(W.OBJECT_HEADER + "\n")
             task = progress.add_task("simulating scans", total=n_scans) if progress else None
             for n in range(n_scans):
                 scan = lidar.scan(n)
@@ -144,17 +147,16 @@ def simulate(map_path: str | Path, out_dir: str | Path, opts: SimOptions | None 
                 total_points += len(scan.t)
                 t_mid = T0 + (n + 0.5) * preset.period
                 hits = np.bincount(scan.vehicle[scan.vehicle >= 0], minlength=len(agents.cls))
-                _objects(traffic, agents, n, t_mid, hits, obj_rng, obj_rows, truth_rows, seen_ids)
+                seen, truth = _objects(traffic, agents, n, t_mid, hits, obj_rng, seen_ids)
+                f_obj.write(W.object_lines(seen))
+                f_truth.write(W.object_lines(truth))
                 if bag is not None:
                     bag.scan(T0 + n * preset.period, scan)
                 if progress is not None and task is not None:
                     progress.advance(task)
         (tmp / "poses.csv").write_text(W.poses_csv(pose_t, meas_xyz, meas_rpy, geo), encoding="utf-8")
-        (tmp / "objects.csv").write_text(W.objects_csv(obj_rows), encoding="utf-8")
-        (tmp / "truth").mkdir()
         W.copy_map(map_path, tmp / "truth" / "map.xodr")
         (tmp / "truth" / "poses.csv").write_text(W.poses_csv(pose_t, true_xyz, true_rpy, geo), encoding="utf-8")
-        (tmp / "truth" / "objects.csv").write_text(W.objects_csv(truth_rows), encoding="utf-8")
         W.write_json(tmp / "truth" / "route.json", _route_json(route, agents, ego, outages, length, duration,
                                                                preset.period, n_scans))
         W.write_yaml(tmp / "meta.yaml", _meta(preset, geo, opts, map_path))
@@ -208,34 +210,33 @@ def _roads_in_view(odr: OpenDriveMap, ego_pos: np.ndarray, radius: float) -> lis
 
 
 def _objects(traffic, agents, n: int, t_mid: float, hits: np.ndarray, rng: np.random.Generator,
-             obj_rows: list, truth_rows: list, seen: set[int]) -> None:
+             seen: set[int]) -> tuple[list[tuple], list[tuple]]:
+    """Rows of the objects a perception system reports in scan n (>= 3 returns, noisy) and of all true ones."""
     if n + 1 >= len(traffic.start):
-        return
+        return [], []
     now = traffic.step(n)
     cols = traffic.agent[now]
-    c0 = traffic.centre[now]
     yaw = traffic.yaw[now]
     vel = traffic.velocity[now]
-    centre = c0 + vel * (t_mid - T0 - 0.1 * n)
+    centre = traffic.centre[now] + vel * (t_mid - T0 - 0.1 * n)
     if n + 2 < len(traffic.start):
         nxt = traffic.step(n + 1)
-        pos = {int(c): j for j, c in enumerate(traffic.agent[nxt])}
-        for j, c in enumerate(cols):
-            q = pos.get(int(c))
-            if q is not None:
-                centre[j] = 0.5 * (c0[j] + traffic.centre[nxt][q])
+        j, q = np.nonzero(cols[:, None] == traffic.agent[nxt][None, :])
+        centre[j] = 0.5 * (traffic.centre[now][j] + traffic.centre[nxt][q])
+    truth, reported = [], []
     for j, c in enumerate(cols):
         c = int(c)
         ln, wd, ht = agents.size[c]
         cls = agents.cls[c]
         x, y, z = centre[j]
-        truth_rows.append((t_mid, c, cls, x, y, z, _wrap(yaw[j]), ln, wd, ht, vel[j, 0], vel[j, 1]))
+        truth.append((t_mid, c, cls, x, y, z, _wrap(yaw[j]), ln, wd, ht, vel[j, 0], vel[j, 1]))
         if hits[c] >= 3:
             seen.add(c)
             e = rng.normal(0.0, 1.0, 9)
-            obj_rows.append((t_mid, c, cls, x + 0.08 * e[0], y + 0.08 * e[1], z + 0.05 * e[2],
+            reported.append((t_mid, c, cls, x + 0.08 * e[0], y + 0.08 * e[1], z + 0.05 * e[2],
                              _wrap(yaw[j] + 0.02 * e[3]), ln + 0.05 * e[4], wd + 0.05 * e[5], ht + 0.05 * e[6],
                              vel[j, 0] + 0.2 * e[7], vel[j, 1] + 0.2 * e[8]))
+    return reported, truth
 
 
 def _wrap(a: float) -> float:

@@ -15,7 +15,7 @@ from scipy.interpolate import PchipInterpolator
 from scipy.signal import lfilter
 
 from lidar2xodr.simulation.route import Route
-from lidar2xodr.simulation.traffic import DT, Agents
+from lidar2xodr.simulation.traffic import Agents
 
 POSE_HZ = 200.0
 
@@ -50,7 +50,7 @@ class PoseTrack:
 def ego_track(route: Route, agents: Agents, t_start: float, rng: np.random.Generator) -> PoseTrack:
     """The ego's true pose at POSE_HZ over the whole drive."""
     t = agents.times
-    u, lam = agents.u[:, 0], agents.lam[:, 0]
+    u, lam = agents.ego_u, agents.ego_lam
     fu = PchipInterpolator(t, u)
     fl = PchipInterpolator(t, lam)
     grid = np.arange(0.0, t[-1] + 1e-9, 1.0 / POSE_HZ)
@@ -98,30 +98,20 @@ class TrafficPoses:
 
 
 def traffic_poses(route: Route, agents: Agents, every: int) -> TrafficPoses:
-    """Box centres and yaw of all traffic at every `every`-th sim step (the scan boundaries)."""
+    """Box centres, yaw and velocity of all traffic at every `every`-th sim step (the scan boundaries)."""
     steps = np.arange(0, len(agents.times), every)
-    rows, cols = np.nonzero(~np.isnan(agents.u[steps]))
-    keep = cols != 0
-    rows, cols = rows[keep], cols[keep]
-    k = steps[rows]
-    u, lam = agents.u[k, cols], agents.lam[k, cols]
+    rows = np.concatenate([np.arange(agents.start[k], agents.start[k + 1]) for k in steps]) \
+        if len(steps) else np.zeros(0, dtype=np.int64)
+    counts = agents.start[steps + 1] - agents.start[steps]
+    cols = agents.agent[rows]
+    u, lam, dlam = agents.u[rows], agents.lam[rows], agents.dlam[rows]
     sign = agents.heading_sign[cols]
-    dlam = _dlam_dt(agents, k, cols)
-    v = np.maximum(agents.v[k, cols], 1.0)
-    pos, rot = route.frames(u, lam, dlam / (v * sign))
+    v = agents.v[rows]
+    pos, rot = route.frames(u, lam, dlam / (np.maximum(v, 1.0) * sign))
     fwd = rot[:, :, 0] * sign[:, None]
     yaw = np.arctan2(fwd[:, 1], fwd[:, 0])
     h = agents.size[cols, 2]
     centre = pos + rot[:, :, 2] * (agents.clearance[cols] + 0.5 * (h - agents.clearance[cols]))[:, None]
-    velocity = fwd * agents.v[k, cols][:, None] + rot[:, :, 1] * dlam[:, None]
-    start = np.searchsorted(rows, np.arange(len(steps) + 1))
+    velocity = fwd * v[:, None] + rot[:, :, 1] * dlam[:, None]
+    start = np.concatenate([[0], np.cumsum(counts)])
     return TrafficPoses(start, cols, centre, yaw, velocity)
-
-
-def _dlam_dt(agents: Agents, k: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    kp = np.minimum(k + 1, len(agents.times) - 1)
-    km = np.maximum(k - 1, 0)
-    a, b = agents.lam[kp, cols], agents.lam[km, cols]
-    a = np.where(np.isnan(a), agents.lam[k, cols], a)
-    b = np.where(np.isnan(b), agents.lam[k, cols], b)
-    return (a - b) / np.maximum((kp - km) * DT, DT)

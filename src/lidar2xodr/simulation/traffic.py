@@ -60,12 +60,22 @@ CLASSES = (
 
 @dataclass
 class Agents:
-    """Agent states on the DT grid. Column 0 is the ego; NaN where an agent is not present."""
+    """Agent states on the DT grid: the ego densely, traffic as records of the agents present at each step.
+
+    Records of step k are rows start[k]:start[k+1] of agent, u, lam, dlam and v. Agent ids index the
+    per-agent arrays; id 0 is the ego.
+    """
 
     times: np.ndarray  # (T,) seconds from the drive start
-    u: np.ndarray  # (T, A)
-    lam: np.ndarray  # (T, A)
-    v: np.ndarray  # (T, A) speed along the route (positive for oncoming too)
+    ego_u: np.ndarray  # (T,)
+    ego_lam: np.ndarray  # (T,)
+    ego_v: np.ndarray  # (T,)
+    start: np.ndarray  # (T + 1,)
+    agent: np.ndarray  # (M,) int
+    u: np.ndarray  # (M,)
+    lam: np.ndarray  # (M,)
+    dlam: np.ndarray  # (M,) lateral speed d(lambda)/dt
+    v: np.ndarray  # (M,) speed along the route (positive for oncoming too)
     heading_sign: np.ndarray  # (A,) +1 travels with the route, -1 oncoming
     cls: list[str]
     size: np.ndarray  # (A, 3) length, width, height
@@ -226,9 +236,13 @@ class TrafficSim:
         end_u = min(length_m, r.length - 0.5)
         self._fill(0.0, 1, max(0.0, -WINDOW_BEHIND), min(r.length, WINDOW_AHEAD), True)
         self._fill(0.0, -1, 0.0, min(r.length, WINDOW_AHEAD), True)
-        rows_u: list[np.ndarray] = []
-        rows_lam: list[np.ndarray] = []
-        rows_v: list[np.ndarray] = []
+        rec_agent: list[np.ndarray] = []
+        rec_u: list[np.ndarray] = []
+        rec_lam: list[np.ndarray] = []
+        rec_dlam: list[np.ndarray] = []
+        rec_v: list[np.ndarray] = []
+        ego: list[tuple[float, float, float]] = []
+        prev_lam = p.lam.copy()
         ou = 0.0
         t = 0.0
         step = 0
@@ -236,9 +250,17 @@ class TrafficSim:
         max_steps = int(length_m / 2.0 / DT) + 10_000
         while True:
             n = p.n
-            rows_u.append(np.where(p.active[:n], p.u[:n], np.nan))
-            rows_lam.append(np.where(p.active[:n], p.lam[:n], np.nan))
-            rows_v.append(np.where(p.active[:n], p.v[:n], np.nan))
+            a = np.flatnonzero(p.active[1:n]) + 1
+            rec_agent.append(a)
+            rec_u.append(p.u[a])
+            rec_lam.append(p.lam[a])
+            known = a < len(prev_lam)
+            d = np.zeros(len(a))
+            d[known] = (p.lam[a[known]] - prev_lam[a[known]]) / DT
+            rec_dlam.append(np.nan_to_num(d))
+            rec_v.append(p.v[a])
+            prev_lam = p.lam.copy()
+            ego.append((p.u[0], p.lam[0], p.v[0]))
             if p.u[0] >= end_u or step >= max_steps:
                 break
             ou += -ou * DT / 60.0 + (12.0 / 3.6) * math.sqrt(2 * DT / 60.0) * rng.standard_normal()
@@ -259,17 +281,16 @@ class TrafficSim:
             if step % 20 == 0 and not on_turn:
                 self._fill(p.u[0], 1, p.u[0] - WINDOW_BEHIND, p.u[0] + WINDOW_AHEAD, False)
                 self._fill(p.u[0], -1, p.u[0] + 0.6 * WINDOW_AHEAD, p.u[0] + WINDOW_AHEAD, False)
-        T, A = len(rows_u), p.n
-        U = np.full((T, A), np.nan)
-        LAM = np.full((T, A), np.nan)
-        V = np.full((T, A), np.nan)
-        for k in range(T):
-            m = len(rows_u[k])
-            U[k, :m], LAM[k, :m], V[k, :m] = rows_u[k], rows_lam[k], rows_v[k]
+        A = p.n
+        e = np.array(ego)
+        counts = np.array([len(a) for a in rec_agent])
         return Agents(
-            np.arange(T) * DT, U, LAM, V, p.sign[:A].copy(), list(p.cls),
-            np.column_stack([p.length[:A], p.width[:A], p.height[:A]]), p.clear[:A].copy(), p.rho[:A].copy(),
-            self.lane_changes,
+            times=np.arange(len(e)) * DT, ego_u=e[:, 0], ego_lam=e[:, 1], ego_v=e[:, 2],
+            start=np.concatenate([[0], np.cumsum(counts)]), agent=np.concatenate(rec_agent),
+            u=np.concatenate(rec_u), lam=np.concatenate(rec_lam), dlam=np.concatenate(rec_dlam),
+            v=np.concatenate(rec_v), heading_sign=p.sign[:A].copy(), cls=list(p.cls),
+            size=np.column_stack([p.length[:A], p.width[:A], p.height[:A]]), clearance=p.clear[:A].copy(),
+            rho=p.rho[:A].copy(), lane_changes=self.lane_changes,
         )
 
     def _enter_turn(self, ego_i: int) -> None:

@@ -92,12 +92,13 @@ def poses_csv(times: np.ndarray, xyz: np.ndarray, angles: np.ndarray, geo: Geo) 
     return POSE_HEADER + "\n" + "".join(r + "\n" for r in rows)
 
 
-def objects_csv(rows: list[tuple]) -> str:
-    out = [OBJECT_HEADER]
+def object_lines(rows: list[tuple]) -> str:
+    """objects.csv lines (no header) of (time, id, class, x, y, z, yaw, length, width, height, vx, vy)."""
+    out = []
     for t, oid, cls, x, y, z, yaw, ln, wd, ht, vx, vy in rows:
         out.append(f"{t:.6f},{oid},{cls},{x:.3f},{y:.3f},{z:.3f},{yaw:.4f},{ln:.3f},{wd:.3f},{ht:.3f},"
-                   f"{vx:.3f},{vy:.3f}")
-    return "\n".join(out) + "\n"
+                   f"{vx:.3f},{vy:.3f}\n")
+    return "".join(out)
 
 
 def _fmt(a: np.ndarray, d: int) -> list[str]:
