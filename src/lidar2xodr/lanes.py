@@ -958,12 +958,16 @@ def build_lane_model(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lane
         n_short = int(np.sum(short & np.isfinite(fit.t).any(axis=1)))
         fit.t[short] = np.nan
         t_ego = _ego_offsets(frame, ego)
-        structure = _lane_structure(fit.t, fit.support, t_ego, step, w_lane, cfg)
+        active = np.flatnonzero(np.isfinite(fit.t).any(axis=1))
+        sub = _lane_structure(fit.t[active], fit.support[active], t_ego, step, w_lane, cfg)
+        structure = _Structure(np.zeros(fit.t.shape, dtype=bool), np.full(fit.t.shape, np.nan), [])
+        structure.on[active], structure.t[active] = sub.on, sub.t
         if not np.any(structure.on.sum(axis=0) >= 2):
             raise InputError(where, "no stretch of road has two marking lines a lane apart")
-        curves = np.where(np.isfinite(structure.t), structure.t, fit.t)
+        curves = np.where(np.isfinite(sub.t), sub.t, fit.t[active])
         curves = _hold_ends(curves, int(round(30.0 / step)), cfg.same_line_tolerance_m)
-        label = _label_by_distance(k_pt, t_pt, inside, curves, cfg)
+        nearest = _label_by_distance(k_pt, t_pt, inside, curves, cfg)
+        label = np.where(nearest >= 0, active[np.maximum(nearest, 0)], -1)
         if it < 2:
             frame = _recentre(frame, structure, cfg)
     assert structure is not None and fit is not None
