@@ -130,12 +130,18 @@ def make_road(
     blobs: int = 20,
     exit_lane: tuple[float, float, float] | None = None,
     guard_rail: float | None = None,
+    opposite: float | None = None,
     ego_lane: int = 1,
+    lane_change_at: float | None = None,
     start_xy: tuple[float, float] = (5.0, 2.0),
     grade: float = 0.01,
     seed: int = 0,
 ) -> SynthRoad:
-    """Draw a marking cloud; `exit_lane` = (s_a, s_b, taper) adds a lane on the right."""
+    """Draw a marking cloud; `exit_lane` = (s_a, s_b, taper) adds a lane on the right.
+
+    `opposite` draws the other carriageway beyond a median of that width (sparse, half occluded);
+    `lane_change_at` moves the ego one lane to the right over 100 m from that station.
+    """
     rng = np.random.default_rng(seed)
     pieces = pieces or [straight(1000.0)]
     s_fine, xy, normal = _centreline(pieces)
@@ -165,9 +171,22 @@ def make_road(
             line.gaps.append(lines_gap)
 
     ego_t = edges[ego_lane] - lane_widths[ego_lane] / 2.0
+    others: list[Line] = []
+    if opposite is not None:
+        base = edges[0] + opposite
+        for i, w in enumerate([0.0, *lane_widths]):
+            base += w
+            last = i == len(lane_widths)
+            line = Line(f"opp{i}", float(base), "solid" if i in (0, len(lane_widths)) else "broken",
+                        0.30 if i == 0 or last else 0.15, 0.0, length, phase=float(rng.uniform(0.0, 18.0)))
+            for a in rng.uniform(0.0, length, int(length / 60)):
+                line.gaps.append((float(a), float(a) + 30.0))
+            others.append(line)
     chunks: list[np.ndarray] = []
     for line in lines:
         chunks.append(_paint(line, rng, density, ego_t))
+    for line in others:
+        chunks.append(_paint(line, rng, 0.5 * density, ego_t))
     st = np.concatenate(chunks) if chunks else np.zeros((0, 2))
     if guard_rail is not None:
         s_g = rng.uniform(0.0, length, int(length * 30))
@@ -199,8 +218,11 @@ def make_road(
     xyz, scan = xyz[order], scan[order]
 
     s_scan = np.arange(n_scans) * scan_step
-    ex = np.interp(s_scan, s_fine, xy[:, 0]) + np.interp(s_scan, s_fine, normal[:, 0]) * ego_t
-    ey = np.interp(s_scan, s_fine, xy[:, 1]) + np.interp(s_scan, s_fine, normal[:, 1]) * ego_t
+    t_scan = np.full(n_scans, ego_t)
+    if lane_change_at is not None:
+        t_scan -= lane_widths[ego_lane] * smoothstep((s_scan - lane_change_at) / 100.0)
+    ex = np.interp(s_scan, s_fine, xy[:, 0]) + np.interp(s_scan, s_fine, normal[:, 0]) * t_scan
+    ey = np.interp(s_scan, s_fine, xy[:, 1]) + np.interp(s_scan, s_fine, normal[:, 1]) * t_scan
     heading = np.arctan2(-np.interp(s_scan, s_fine, normal[:, 0]), np.interp(s_scan, s_fine, normal[:, 1]))
     poses = np.tile(np.eye(4), (n_scans, 1, 1))
     poses[:, 0, 0], poses[:, 0, 1] = np.cos(heading), -np.sin(heading)

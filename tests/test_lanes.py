@@ -270,3 +270,13 @@ def test_lanes_command_writes_model_and_report(exit_lane: tuple[SynthRoad, LaneM
     assert res.exit_code == 2
     assert "missing.ply" in res.output and "Traceback" not in res.output
     assert not (tmp_path / "x.json").exists()
+
+
+def test_other_carriageway_beyond_the_median_is_ignored() -> None:
+    road = make_road([straight(300.0), arc(500.0, 2500.0)], opposite=4.0, gnss_noise=0.05, lane_change_at=300.0,
+                     seed=21)
+    model = _build(road)
+    assert {len(sec.boundary_ids) - 1 for sec in model.sections} == {3}
+    res = evaluate(model, road)
+    assert res["rmse"] < 0.05 and res["lane_count_ok"] > 0.99
+    assert sum("ignored" in w for w in model.warnings) >= 3

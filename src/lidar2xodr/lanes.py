@@ -526,8 +526,8 @@ class _Structure:
     notes: list[str]
 
 
-def _lane_structure(t_fit: np.ndarray, support: np.ndarray, t_ego: np.ndarray | None, step: float,
-                    w_lane: float, cfg: LanesConfig) -> _Structure:
+def _lane_structure(t_fit: np.ndarray, support: np.ndarray, solid: np.ndarray, t_ego: np.ndarray | None,
+                    step: float, w_lane: float, cfg: LanesConfig) -> _Structure:
     """Which boundaries form the carriageway at each station, with tapers followed to zero width.
 
     Two rounds: the extensions found in the first (tapers, lines carried to the drive's ends) are
@@ -542,7 +542,7 @@ def _lane_structure(t_fit: np.ndarray, support: np.ndarray, t_ego: np.ndarray | 
         on = np.isfinite(t)
         _drop_duplicates(t, on, rank, cfg.same_line_tolerance_m, min_run)
         for _ in range(3):
-            on = _choose_carriageway(t, on, t_ego, cfg)
+            on = _choose_carriageway(t, on, t_ego, solid, support, cfg)
             on, _ = _check_adjacency(t, on, rank, step, cfg)
             on = _clean_runs(on, min_run)
         t_ext, on = _follow_tapers(t, on, step, w_lane, cfg)
@@ -586,19 +586,31 @@ def _sorted_columns(t: np.ndarray, on: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return order, np.take_along_axis(np.where(on, t, np.nan), order, axis=0)
 
 
-def _choose_carriageway(t: np.ndarray, on: np.ndarray, t_ego: np.ndarray | None, cfg: LanesConfig) -> np.ndarray:
-    """Split at spacings above the widest lane; keep the group with the ego (else the most lines)."""
+def _choose_carriageway(t: np.ndarray, on: np.ndarray, t_ego: np.ndarray | None, solid: np.ndarray,
+                        support: np.ndarray, cfg: LanesConfig) -> np.ndarray:
+    """Split into carriageways and keep the one with the ego (else the most lines, then most points).
+
+    Splits: spacings above the widest lane, and a space between two solid lines that both have
+    lines beyond them (the median between two carriageways: each edge line has its own lanes on
+    its other side).
+    """
     b_n, m = t.shape
     order, ts = _sorted_columns(t, on)
-    gap = ts[:-1] - ts[1:]
-    split = np.vstack([np.zeros((1, m), dtype=bool), ~(gap <= cfg.max_lane_width_m)])
-    group = np.cumsum(split, axis=0)
     present = np.isfinite(ts)
+    gap = ts[:-1] - ts[1:]
+    both_solid = solid[order[:-1]] & solid[order[1:]]
+    beyond = np.vstack([np.zeros((1, m), dtype=bool), present[:-2]]) & np.vstack([present[2:],
+                                                                                  np.zeros((1, m), dtype=bool)])
+    median = both_solid & beyond & present[:-1] & present[1:]
+    split = np.vstack([np.zeros((1, m), dtype=bool), ~(gap <= cfg.max_lane_width_m) | median])
+    group = np.cumsum(split, axis=0)
     n_groups = group.max() + 1
-    sizes = np.zeros((n_groups, m))
+    score = np.zeros((n_groups, m))
+    weight = support[order] / max(float(support.max()), 1e-9)
     for g in range(n_groups):
-        sizes[g] = np.sum(present & (group == g), axis=0)
-    choice = np.argmax(sizes, axis=0)
+        sel = present & (group == g)
+        score[g] = sel.sum(axis=0) + 1e-3 * np.where(sel, weight, 0.0).sum(axis=0)
+    choice = np.argmax(score, axis=0)
     if t_ego is not None:
         for g in range(n_groups):
             sel = present & (group == g)
@@ -959,7 +971,8 @@ def build_lane_model(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lane
         fit.t[short] = np.nan
         t_ego = _ego_offsets(frame, ego)
         active = np.flatnonzero(np.isfinite(fit.t).any(axis=1))
-        sub = _lane_structure(fit.t[active], fit.support[active], t_ego, step, w_lane, cfg)
+        solid = np.array([_mark_pattern(s_pt[(label == b) & inside], cfg)[0] == "solid" for b in active], dtype=bool)
+        sub = _lane_structure(fit.t[active], fit.support[active], solid, t_ego, step, w_lane, cfg)
         structure = _Structure(np.zeros(fit.t.shape, dtype=bool), np.full(fit.t.shape, np.nan), [])
         structure.on[active], structure.t[active] = sub.on, sub.t
         if not np.any(structure.on.sum(axis=0) >= 2):
