@@ -62,6 +62,17 @@ class Line:
         return out
 
 
+class _Diverging(Line):
+    """A line leaving the road at a constant angle from station s0."""
+
+    def __init__(self, line: Line, s0: float, slope: float) -> None:
+        super().__init__(**vars(line))
+        self._s0, self._slope = s0, slope
+
+    def t(self, s: np.ndarray) -> np.ndarray:
+        return self.offset + self._slope * np.maximum(np.asarray(s, dtype=np.float64) - self._s0, 0.0)
+
+
 def smoothstep(x: np.ndarray) -> np.ndarray:
     x = np.clip(x, 0.0, 1.0)
     return x * x * (3.0 - 2.0 * x)
@@ -131,6 +142,7 @@ def make_road(
     exit_lane: tuple[float, float, float] | None = None,
     guard_rail: float | None = None,
     opposite: float | None = None,
+    ramp: tuple[float, float] | None = None,
     ego_lane: int = 1,
     lane_change_at: float | None = None,
     start_xy: tuple[float, float] = (5.0, 2.0),
@@ -140,7 +152,8 @@ def make_road(
     """Draw a marking cloud; `exit_lane` = (s_a, s_b, taper) adds a lane on the right.
 
     `opposite` draws the other carriageway beyond a median of that width (sparse, half occluded);
-    `lane_change_at` moves the ego one lane to the right over 100 m from that station.
+    `lane_change_at` moves the ego one lane to the right over 100 m from that station; `ramp` =
+    (s0, angle in degrees) draws the two solid edges of a ramp that leaves the right edge at s0.
     """
     rng = np.random.default_rng(seed)
     pieces = pieces or [straight(1000.0)]
@@ -182,6 +195,13 @@ def make_road(
             for a in rng.uniform(0.0, length, int(length / 60)):
                 line.gaps.append((float(a), float(a) + 30.0))
             others.append(line)
+    if ramp is not None:
+        s0, angle = ramp
+        slope = -np.tan(np.radians(angle))
+        for k, extra in enumerate((0.0, -lane_widths[-1])):
+            line = Line(f"ramp{k}", float(edges[-1]) + extra, "solid", 0.30, s0, min(s0 + 250.0, length))
+            line.taper = None
+            others.append(_Diverging(line, s0, slope))
     chunks: list[np.ndarray] = []
     for line in lines:
         chunks.append(_paint(line, rng, density, ego_t))

@@ -280,3 +280,11 @@ def test_other_carriageway_beyond_the_median_is_ignored() -> None:
     res = evaluate(model, road)
     assert res["rmse"] < 0.05 and res["lane_count_ok"] > 0.99
     assert sum("ignored" in w for w in model.warnings) >= 3
+
+
+def test_ramp_leaving_the_road_makes_no_lane() -> None:
+    road = make_road([straight(300.0), arc(600.0, -1500.0)], ramp=(400.0, 1.5), gnss_noise=0.05, seed=23)
+    model = _build(road)
+    assert {len(sec.boundary_ids) - 1 for sec in model.sections} == {3}
+    assert evaluate(model, road)["rmse"] < 0.05
+    assert any("ignored" in w for w in model.warnings)
