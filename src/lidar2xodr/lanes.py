@@ -977,7 +977,7 @@ def build_lane_model(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lane
         structure.on[active], structure.t[active] = sub.on, sub.t
         if not np.any(structure.on.sum(axis=0) >= 2):
             raise InputError(where, "no stretch of road has two marking lines a lane apart")
-        curves = np.where(np.isfinite(sub.t), sub.t, fit.t[active])
+        curves = _labelling_curves(sub.t, fit.t[active], cfg.same_line_tolerance_m)
         curves = _hold_ends(curves, int(round(30.0 / step)), cfg.same_line_tolerance_m)
         nearest = _label_by_distance(k_pt, t_pt, inside, curves, cfg)
         label = np.where(nearest >= 0, active[np.maximum(nearest, 0)], -1)
@@ -1078,6 +1078,19 @@ def _label_by_candidates(xy: np.ndarray, candidates: list[Candidate], superline:
     d, j = cKDTree(samples).query(xy, distance_upper_bound=cfg.assign_distance_m)
     ok = np.isfinite(d)
     return np.where(ok, owner_arr[np.minimum(j, len(owner_arr) - 1)], -1)
+
+
+def _labelling_curves(kept: np.ndarray, fitted: np.ndarray, tol: float) -> np.ndarray:
+    """Curves that attract points: kept boundaries, and fitted lines where no kept boundary runs
+    within `tol` (ignored lines keep their points; a dropped duplicate gives its points up)."""
+    out = kept.copy()
+    for b in range(len(kept)):
+        free = ~np.isfinite(kept[b]) & np.isfinite(fitted[b])
+        if not free.any():
+            continue
+        close = np.abs(np.delete(kept, b, axis=0) - fitted[b][None, :]) < tol
+        out[b] = np.where(free & ~close.any(axis=0), fitted[b], out[b])
+    return out
 
 
 def _hold_ends(curves: np.ndarray, reach: int, tol: float) -> np.ndarray:
