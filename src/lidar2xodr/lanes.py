@@ -17,22 +17,29 @@ Method and the decisions the paper leaves open (parameters in `LanesConfig`):
   diverging edge line and the new line at its old place stay apart. The result: superlines.
 - Frame and reference line: a first road axis is the smoothed middle of the lookups' cross
   sections, ordered by geodesic distance over a neighbour graph (no trajectory). Points are
-  assigned to superlines (first by candidate, then by distance to the fitted curves) and each
-  boundary t(s) is a robust (Tukey-weighted) Whittaker smoother with cutoff wavelength
-  `boundary_smoothing_m`, fitted to the points rather than to the cluster centres. The reference
-  line is the centre between the outermost kept boundaries, smoothed (`reference_smoothing_m`);
-  the frame is replaced by it twice, so the final t(s) are offsets from the written reference
-  line itself. Z comes from the marking points (per-station plane across the road at t = 0).
-- Lane structure per station: parallel lines closer than `same_line_tolerance_m` are one
-  (the weaker is dropped); spacings above `max_lane_width_m` split carriageways (the one holding
-  the ego trajectory is kept, else the one with most lines; lines of the other are ignored with a
-  warning); every adjacency of two lines must contain a stable lane stretch (width within
-  [min, max] and changing less than `stable_lane_slope`) of `min_section_length_m`, otherwise the
-  outer line (or the weaker of two inner ones) is dropped there: guard rails, gores of diverging
-  ramps and strays never make lanes. Boundaries that appear or end are followed back (forward)
-  to where the lane between them and their neighbour has zero width (`max_taper_length_m`), so an
-  added lane grows from zero. Sections are stretches with a constant boundary set; sections
-  shorter than `min_section_length_m` are merged into a neighbour.
+  assigned to superlines (first by candidate, then by distance to the fitted curves, which may
+  grow 30 m per pass but never onto another line) and each boundary t(s) is a robust
+  (Tukey-weighted) Whittaker smoother with cutoff wavelength `boundary_smoothing_m`, fitted to
+  the points rather than to the cluster centres; short islands (a dash, a blob) lying off the
+  curve fitted without them are dropped, and across unobserved stretches over 20 m a line keeps
+  its width to the best-observed neighbour. The reference line is the centre between the
+  outermost kept boundaries, smoothed (`reference_smoothing_m`); the frame is replaced by it
+  twice, so the final t(s) are offsets from the written reference line itself. Z comes from the
+  marking points (a plane across the road per 5 m, evaluated at t = 0, smoothed along s).
+- Lane structure per station: parallel lines closer than `same_line_tolerance_m` are one (the
+  one that goes on where the other ends is kept, else the better supported); carriageways split
+  at spacings above `max_lane_width_m` and at a space between two solid lines that both have
+  lines beyond them (a median); the one holding the ego trajectory is kept (else the one with
+  most lines, then most points) and lines of the other are ignored with a warning. Every
+  adjacency of two lines must contain a stable lane stretch (width within [min, max], changing
+  less than `stable_lane_slope`) of `min_section_length_m`, otherwise the outer line (or the
+  weaker of two inner ones) is dropped: guard rails, gores of diverging ramps and strays never
+  make lanes. Boundaries that appear or end are followed back (forward) to where the lane
+  between them and their neighbour has zero width (`max_taper_length_m`), so an added lane
+  grows from zero; lines that only start late or end early near the ends of the drive (not yet
+  or no longer observed) are carried to the ends at a constant offset from a neighbour. Two
+  rounds, so extensions count as measured lines. Sections are stretches with a constant
+  boundary set; shorter than `min_section_length_m` they join a neighbour.
 - Beyond the paper: solid/broken from the painted runs along s (length-weighted median run above
   `solid_min_run_m` = solid; dash and gap are medians of runs and gaps), and the marking width
   from the spread of the points across the fitted curve, unmixing the paint (uniform) from the
@@ -523,7 +530,6 @@ def _first_frame(segs: Segments, lookups: Lookups, cfg: LanesConfig) -> Frame:
 class _Structure:
     on: np.ndarray  # (B, M) boundary kept at station
     t: np.ndarray  # (B, M) offsets including taper extensions
-    notes: list[str]
 
 
 def _lane_structure(t_fit: np.ndarray, support: np.ndarray, solid: np.ndarray, t_ego: np.ndarray | None,
@@ -547,7 +553,7 @@ def _lane_structure(t_fit: np.ndarray, support: np.ndarray, solid: np.ndarray, t
             on = _clean_runs(on, min_run)
         t_ext, on = _follow_tapers(t, on, step, w_lane, cfg)
         t = np.where(on, t_ext, t)
-    return _Structure(on, np.where(on, t, np.nan), [])
+    return _Structure(on, np.where(on, t, np.nan))
 
 
 def _drop_duplicates(t: np.ndarray, on: np.ndarray, rank: np.ndarray, tol: float, min_run: int) -> None:
@@ -973,7 +979,7 @@ def build_lane_model(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lane
         active = np.flatnonzero(np.isfinite(fit.t).any(axis=1))
         solid = np.array([_mark_pattern(s_pt[(label == b) & inside], cfg)[0] == "solid" for b in active], dtype=bool)
         sub = _lane_structure(fit.t[active], fit.support[active], solid, t_ego, step, w_lane, cfg)
-        structure = _Structure(np.zeros(fit.t.shape, dtype=bool), np.full(fit.t.shape, np.nan), [])
+        structure = _Structure(np.zeros(fit.t.shape, dtype=bool), np.full(fit.t.shape, np.nan))
         structure.on[active], structure.t[active] = sub.on, sub.t
         if not np.any(structure.on.sum(axis=0) >= 2):
             raise InputError(where, "no stretch of road has two marking lines a lane apart")
