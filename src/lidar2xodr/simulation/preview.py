@@ -21,7 +21,7 @@ from matplotlib.colors import PowerNorm  # noqa: E402
 from lidar2xodr.simulation.lidar import ScanOut  # noqa: E402
 from lidar2xodr.simulation.poses import PoseTrack  # noqa: E402
 
-MAX_POINTS = 6_000_000
+MAX_POINTS = 4_000_000
 NEAR_M = 80.0
 TILE_EVERY_M = 200.0
 MAX_TILES = 100
@@ -34,6 +34,7 @@ class PreviewCollector:
         self.mount_z = mount_z
         self.scale = intensity_scale
         self.stride = max(1, math.ceil(expected_points * 0.5 / MAX_POINTS))
+        self.origin: np.ndarray | None = None
         self.xy: list[np.ndarray] = []
         self.z: list[np.ndarray] = []
         self.val: list[np.ndarray] = []
@@ -41,15 +42,18 @@ class PreviewCollector:
     def add(self, scan: ScanOut) -> None:
         keep = (scan.height < self.mount_z) & (np.hypot(scan.xyz[:, 0], scan.xyz[:, 1]) < NEAR_M)
         idx = np.flatnonzero(keep)[:: self.stride]
-        self.xy.append(scan.world[idx, :2])
-        self.z.append(scan.world[idx, 2].astype(np.float32))
+        world = scan.world[idx]
+        if self.origin is None:
+            self.origin = scan.origin[:2].copy()
+        self.xy.append((world[:, :2] - self.origin).astype(np.float32))
+        self.z.append(world[:, 2].astype(np.float32))
         self.val.append(np.minimum(scan.intensity[idx] / self.scale, 1.2).astype(np.float32))
 
     def points(self) -> tuple[np.ndarray, np.ndarray]:
         """World xy and reflectivity (1.0 = 100 %) of the kept points."""
-        if not self.xy:
+        if not self.xy or self.origin is None:
             return np.zeros((0, 2)), np.zeros(0, np.float32)
-        return np.concatenate(self.xy), np.concatenate(self.val)
+        return np.concatenate(self.xy).astype(np.float64) + self.origin, np.concatenate(self.val)
 
     def heights(self) -> np.ndarray:
         """World z of the kept points."""
