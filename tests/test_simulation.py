@@ -387,7 +387,7 @@ def test_turn_shapes_are_u_turns() -> None:
 
 def test_laps_on_a_two_way_road_keep_poses_continuous(tmp_path: Path) -> None:
     xodr = tiny_map(tmp_path / "m.xodr", 220.0, two_way=True, geo=True)
-    s = simulate(xodr, tmp_path / "d", SimOptions(length_m=380.0, traffic="none", seed=1))
+    s = simulate(xodr, tmp_path / "d", SimOptions(length_m=380.0, traffic="none", seed=1, rosbag=True))
     assert s.passes == 2
     poses = load_poses(tmp_path / "d" / "truth" / "poses.csv")
     steps = np.linalg.norm(np.diff(poses[:, 1:3], axis=0), axis=1)
@@ -403,6 +403,25 @@ def test_laps_on_a_two_way_road_keep_poses_continuous(tmp_path: Path) -> None:
     assert lat == pytest.approx(48.78, abs=0.01)
     meta = yaml.safe_load((tmp_path / "d" / "meta.yaml").read_text())
     assert meta["origin"]["lat"] == pytest.approx(48.78, abs=1e-6) and meta["origin"]["proj"] == GEO
+    from rosbags.rosbag2.storage_mcap import MCAPFile
+
+    f = MCAPFile(tmp_path / "d" / "drive.mcap")
+    f.open()
+    f.meta_scan()
+    assert "/gnss/fix" in {c.topic for c in f.channels.values()}
+    f.close()
+
+
+def test_geo_reference_conventions() -> None:
+    from lidar2xodr.simulation.writer import Geo
+
+    carla = Geo("+lat_0=4.9000000000000000e+1 +lon_0=8.0000000000000000e+0")
+    assert carla.ok and "CARLA" in (carla.note or "")
+    lat, lon, alt = carla.latlon(np.array([[0.0, 1000.0, 5.0], [1000.0, 0.0, 5.0]]))
+    assert lat[0] == pytest.approx(49.0 + 1000.0 / 111_200.0, abs=2e-4) and lon[1] > 8.01 and alt[0] == 5.0
+    bad = Geo("no projection at all")
+    assert not bad.ok and "not understood" in (bad.note or "")
+    assert Geo(None).origin()["lat"] is None
 
 
 # ---------------------------------------------------------------------------------------------- sensors

@@ -259,7 +259,7 @@ def _closeup_index(ego, traffic, agents) -> int:
     for s in range(0, n, max(1, n // 200)):
         sl = traffic.step(s)
         k = min(int(round(s * 0.1 * ego.hz)), len(ego.pos) - 1)
-        if sl.stop == sl.start or speed[k] < 15.0:
+        if sl.stop == sl.start or speed[k] < 15.0 or not 0.1 * n <= s <= 0.9 * n:
             continue
         d = traffic.centre[sl] - ego.pos[k]
         fwd = d @ ego.rot[k][:, 0]

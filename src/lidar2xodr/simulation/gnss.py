@@ -2,10 +2,10 @@
 
 Decisions:
 - Horizontal error per axis = first-order Gauss-Markov noise (correlation time 20 s, sigma
-  0.8 * --gnss-noise-m) + white noise (0.6 * --gnss-noise-m): the total per-axis standard
-  deviation is --gnss-noise-m. Vertical errors are 1.5 times larger. Attitude errors scale with
-  the same option (at 0.05 m: roll/pitch 0.02 deg, yaw 0.08 deg, correlated over 60 s). Zero
-  means perfect poses.
+  0.916 * --gnss-noise-m) + white noise (0.4 * --gnss-noise-m): the total per-axis standard
+  deviation is --gnss-noise-m, and the 100 Hz output stays smooth like an INS-filtered solution.
+  Vertical errors are 1.5 times larger. Attitude errors scale with the same option (at 0.05 m:
+  roll/pitch 0.02 deg, yaw 0.08 deg, correlated over 60 s). Zero means perfect poses.
 - --gnss-outage: one outage of 20-45 s per started 5 minutes of driving (none in the first and
   last 10 %). During an outage the INS dead-reckons: the error grows as v0 * t + a * t^2 / 2
   (v0 ~ 0.05 m/s, a ~ 0.01 m/s^2 per axis, yaw drift ~ 0.1 deg/min) and converges back within
@@ -41,7 +41,7 @@ def pose_errors(
     scale = sigma_m / 0.05
     for axis, mult in ((0, 1.0), (1, 1.0), (2, 1.5)):
         s = sigma_m * mult
-        err[:, axis] = gauss_markov(n, dt, 0.8 * s, HORIZONTAL_CORR_S, rng) + rng.normal(0.0, 0.6 * s, n)
+        err[:, axis] = gauss_markov(n, dt, 0.916 * s, HORIZONTAL_CORR_S, rng) + rng.normal(0.0, 0.4 * s, n)
     for axis, deg in ((3, 0.02), (4, 0.02), (5, 0.08)):
         err[:, axis] = gauss_markov(n, dt, np.radians(deg) * scale, ATTITUDE_CORR_S, rng)
     outages: list[tuple[float, float]] = []

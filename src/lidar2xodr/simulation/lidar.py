@@ -145,6 +145,13 @@ class Lidar:
         inside = (dirs @ unit[near].T.astype(np.float32)) > cos_lim[near].astype(np.float32)[None, :]
         for col, j in enumerate(near):
             cand = np.flatnonzero(inside[:, col])
+            if dist[j] <= radius[j] and len(cand):
+                # close by, the cone test passes every ray: keep those that meet the moving bounding sphere
+                rel = (c0[j] - origins[cand]).astype(np.float32) + w[cand, None] * (c1[j] - c0[j]).astype(np.float32)
+                tca = np.einsum("ij,ij->i", rel, dirs[cand])
+                miss2 = np.einsum("ij,ij->i", rel, rel) - tca * tca
+                rb = float(np.linalg.norm(half[j])) + 0.1
+                cand = cand[(miss2 < rb * rb) & (tca > -rb)]
             if len(cand) == 0:
                 continue
             ww = w[cand, None].astype(np.float64)  # box motion and slab test in float64

@@ -6,9 +6,10 @@ and obeys the same rules, so it never drives through anyone.
 Decisions:
 - Longitudinal: the Intelligent Driver Model (IDM) with per-class parameters; desired speed is
   capped by the route's curve speed (lateral acceleration 1.8 m/s^2).
-- Ego speed: an Ornstein-Uhlenbeck process (sigma 12 km/h, 60 s correlation) around --speed-kmh,
-  kept within [mean - 30, mean + 30] km/h, slowed by traffic and curves; 10 % acceleration
-  noise-free. The realised mean is therefore a little below --speed-kmh in traffic.
+- Ego speed: an Ornstein-Uhlenbeck process (sigma 12 km/h at 110 km/h, 60 s correlation) around
+  --speed-kmh, kept within mean +- 30 km/h (and +-40 % of it), slowed by traffic, curves and
+  U-turns, so the realised mean is a little below --speed-kmh. Traffic desired speeds (per class,
+  motorway values below) scale with --speed-kmh / 110, so a 50 km/h drive gets city traffic.
 - Lane changes last 4-6 s (quintic lateral profile; cut-ins 3-4 s). Traffic overtakes on the left
   (right-hand traffic; mirrored for LHT maps) when its leader is slower, returns to the right lane
   when it is free, and leaves lanes that end within 300 m. About one in five drivers is aggressive
@@ -131,6 +132,9 @@ class TrafficSim:
         self.rng = rng
         self.density = DENSITY[traffic] / 1000.0
         self.mean_v = speed_kmh / 3.6
+        self.speed_scale = speed_kmh / 110.0  # traffic speeds are motorway speeds scaled like the ego's
+        self.v_lo = max(self.mean_v - 30 / 3.6, 0.6 * self.mean_v)
+        self.v_hi = min(self.mean_v + 30 / 3.6, 1.4 * self.mean_v)
         self.keep = -1 if route.odr.roads[route.nodes[0][0]].rule.upper() != "LHT" else 1
         self.p = _Pool()
         seg = np.cumsum([leg.kind == "turn" for leg in route.legs])
@@ -199,7 +203,7 @@ class TrafficSim:
         ego_seg = self.segment[r.index(ego_u)]
         for _ in range(tries):
             cls = CLASSES[int(rng.choice(len(CLASSES), p=[c.share for c in CLASSES]))]
-            v0 = max(15.0, rng.normal(*cls.speed_kmh) / 3.6)
+            v0 = max(3.0, rng.normal(*cls.speed_kmh) / 3.6 * self.speed_scale)
             if initial:
                 u = rng.uniform(lo, hi)
             elif sign > 0:
@@ -264,7 +268,7 @@ class TrafficSim:
             if p.u[0] >= end_u or step >= max_steps:
                 break
             ou += -ou * DT / 60.0 + (12.0 / 3.6) * math.sqrt(2 * DT / 60.0) * rng.standard_normal()
-            p.v0[0] = float(np.clip(self.mean_v + ou, self.mean_v - 30 / 3.6, self.mean_v + 30 / 3.6))
+            p.v0[0] = float(np.clip(self.mean_v + ou * self.speed_scale, self.v_lo, self.v_hi))
             ego_i = int(r.index(p.u[0]))
             on_turn = bool(self.on_turn[ego_i])
             if on_turn and not was_turn:

@@ -51,8 +51,19 @@ class Geo:
             return
         try:
             self._t = Transformer.from_crs(CRS.from_user_input(geo_reference), CRS.from_epsg(4326), always_xy=True)
+            return
         except CRSError as exc:
-            self.note = f"geoReference not understood by PROJ ({exc}); lat/lon left empty"
+            problem = str(exc)
+        if "+proj=" not in geo_reference and "+lat_0" in geo_reference:
+            # CARLA writes "+lat_0=.. +lon_0=.." without a projection: it means a transverse Mercator there
+            try:
+                crs = CRS.from_user_input(f"+proj=tmerc +ellps=WGS84 +k=1 +x_0=0 +y_0=0 {geo_reference} +no_defs")
+                self._t = Transformer.from_crs(crs, CRS.from_epsg(4326), always_xy=True)
+                self.note = "geoReference has no +proj: read as +proj=tmerc (CARLA convention)"
+                return
+            except CRSError:
+                pass
+        self.note = f"geoReference not understood by PROJ ({problem}); lat/lon left empty"
 
     @property
     def ok(self) -> bool:
@@ -67,7 +78,10 @@ class Geo:
         if not self.ok:
             return {"lat": None, "lon": None, "alt": 0.0, "proj": self.proj, "note": self.note}
         lat, lon, _ = self.latlon(np.zeros((1, 3)))
-        return {"lat": round(float(lat[0]), 9), "lon": round(float(lon[0]), 9), "alt": 0.0, "proj": self.proj}
+        out = {"lat": round(float(lat[0]), 9), "lon": round(float(lon[0]), 9), "alt": 0.0, "proj": self.proj}
+        if self.note:
+            out["note"] = self.note
+        return out
 
 
 def rpy(rot: np.ndarray) -> np.ndarray:
