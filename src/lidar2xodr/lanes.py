@@ -105,6 +105,49 @@ class Lookups:
     pos_b: np.ndarray
 
 
+def split_candidates(candidates: list[Candidate], cfg: LanesConfig) -> tuple[list[Candidate], np.ndarray]:
+    """Candidates cleaned for the lookups: a lone centre that kinks the line out and back (a blob
+    Combine took in) is left out, and the line is cut where it still turns by more than
+    `max_intersect_angle_deg` or leaps further than `max_link_gap_m` / 8 (a line does neither; a
+    chain through junk does). Returns the pieces and the candidate index of each; pieces keep the
+    candidate's id."""
+    cos_max = math.cos(math.radians(cfg.max_intersect_angle_deg))
+    pieces: list[Candidate] = []
+    owner: list[int] = []
+    for i, c in enumerate(candidates):
+        ctr = np.asarray(c.centers, dtype=np.float64)
+        keep = np.ones(len(ctr), dtype=bool)
+        for k in range(1, len(ctr) - 1):
+            if _turn_cos(ctr[k - 1], ctr[k], ctr[k + 1]) < cos_max:
+                nxt = ctr[k + 2] if k + 2 < len(ctr) else None
+                prev = ctr[k - 2] if k >= 2 and keep[k - 2] else None
+                around = [_turn_cos(a, ctr[k - 1], ctr[k + 1]) for a in (prev,) if a is not None]
+                around += [_turn_cos(ctr[k - 1], ctr[k + 1], b) for b in (nxt,) if b is not None]
+                if all(v >= cos_max for v in around):
+                    keep[k] = False
+        idx = np.flatnonzero(keep)
+        ctr_k = ctr[idx]
+        d = np.diff(ctr_k[:, :2], axis=0)
+        ln = np.linalg.norm(d, axis=1)
+        u = d / np.maximum(ln, 1e-9)[:, None]
+        cut = np.zeros(len(ctr_k), dtype=bool)
+        if len(ctr_k) > 2:
+            cut[1:-1] = np.einsum("ij,ij->i", u[1:], u[:-1]) < cos_max
+        leap = np.flatnonzero(ln > cfg.max_link_gap_m / 8.0)
+        bounds = sorted({0, len(ctr_k), *np.flatnonzero(cut).tolist(), *(leap + 1).tolist()})
+        for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+            sel = idx[a:b]
+            pieces.append(Candidate(c.id, ctr[sel], np.asarray(c.directions)[sel], np.asarray(c.cluster_ids)[sel]))
+            owner.append(i)
+    return pieces, np.asarray(owner, dtype=np.int64)
+
+
+def _turn_cos(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> float:
+    """Cosine of the turn at b on the way a -> b -> c (1 = straight on)."""
+    u, v = b[:2] - a[:2], c[:2] - b[:2]
+    return float(u @ v / max(float(np.linalg.norm(u) * np.linalg.norm(v)), 1e-12))
+
+
 def candidate_segments(candidates: list[Candidate], half_dash: float = 3.0) -> Segments:
     """Segments of every candidate; a single-centre candidate is a dash-long segment along its direction."""
     p0, p1, cand, arc0 = [], [], [], []
@@ -279,8 +322,8 @@ def _links_via_neighbours(lookups: Lookups, n_cand: int, tol: float, step: float
         if s1 - s0 < 2:
             continue
         p, o = pos[s0:s1], off[s0:s1]
-        head = np.median(o[p <= p[0] + 30.0])
-        tail = np.median(o[p >= p[-1] - 30.0])
+        head = np.median(o[p <= max(p[0] + 30.0, p[min(4, len(p) - 1)])])
+        tail = np.median(o[p >= min(p[-1] - 30.0, p[max(len(p) - 5, 0)])])
         if round(abs(head) / step) == 0 and round(abs(tail) / step) == 0:
             continue
         rows.append((int(pair_s[s0] // n_cand), int(pair_s[s0] % n_cand), float(p[0]), float(p[-1]),
@@ -954,17 +997,18 @@ def build_lane_model(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lane
     if not candidates:
         raise InputError(where, "no candidate lines were found in the markings")
     step = cfg.station_step_m
-    segs = candidate_segments(candidates)
+    pieces, owner = split_candidates(candidates, cfg)
+    segs = candidate_segments(pieces)
     lookups = relative_lookups(segs, cfg)
     w_lane = lane_step(lookups, cfg)
     if w_lane is None:
         raise InputError(where, "found no two parallel marking lines "
                                 f"{cfg.min_lane_width_m:g}-{cfg.max_lane_width_m:g} m apart: a single line "
                                 "(or none) cannot give lanes")
-    superline = global_lookup(len(candidates), lookups, w_lane, cfg)
+    superline = global_lookup(len(pieces), lookups, w_lane, cfg)
     frame = _first_frame(segs, lookups, cfg)
     warnings: list[str] = []
-    label = _label_by_candidates(xyz[:, :2], candidates, superline, cfg)
+    label = _label_by_candidates(xyz[:, :2], pieces, superline, cfg)
     n_sl = int(superline.max()) + 1
     ego = cloud.trajectory.positions[:, :2] if len(cloud.trajectory) else None
     lam = _lam(cfg.boundary_smoothing_m, step)
@@ -994,7 +1038,15 @@ def build_lane_model(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lane
         warnings.append(f"ignored {n_short} marking pieces shorter than {cfg.min_section_length_m:g} m "
                         "(stray returns, blobs, arrows)")
     pts = _Points(k_pt, t_pt, s_pt, inside, label, xyz[:, 2])
-    return _assemble(cloud, candidates, superline, frame, fit, structure, pts, warnings, cfg)
+    model = _assemble(cloud, pieces, superline, frame, fit, structure, pts, warnings, cfg)
+    longest: dict[int, tuple[int, int]] = {}
+    for piece, i in zip(pieces, owner, strict=True):
+        if i not in longest or len(piece.centers) > longest[i][0]:
+            longest[i] = (len(piece.centers), piece.superline)
+    for i, c in enumerate(candidates):
+        c.superline = longest[i][1]
+    model.candidates = candidates
+    return model
 
 
 @dataclass

@@ -47,6 +47,7 @@ from lidar2xodr.data import Candidate
 from lidar2xodr.errors import InputError
 
 _RANSAC_SAMPLES = 48
+_MAX_CURV = 1.0 / 500.0  # curvature allowed in the Combine extrapolation (63 m on R 500 m: 4 m)
 _CHUNK = 1024
 
 
@@ -419,7 +420,9 @@ def _extrapolate(xy: np.ndarray, u: np.ndarray, dists: np.ndarray, span: float =
     al, lat = rel @ u, rel @ n
     slope = curv = 0.0
     if use.sum() >= 4 and -al.min() >= 20.0:
-        curv, slope, _ = np.polyfit(al, lat, 2)
+        coef = np.polyfit(al, lat, 2)
+        if np.sqrt(np.mean((np.polyval(coef, al) - lat) ** 2)) < 0.3:
+            curv, slope = float(np.clip(coef[0], -_MAX_CURV / 2, _MAX_CURV / 2)), float(coef[1])
     out = u + n * slope
     out /= np.linalg.norm(out)
     pred = last + dists[:, None] * u + (slope * dists + curv * dists**2)[:, None] * n
@@ -462,6 +465,9 @@ def _link_terminals(chains: list[np.ndarray], clusters: Clusters, cfg: MarkingsC
             hits = hits[term.out[hits] @ term.out[a] <= -cos_max]
             dz = np.abs(term.point[hits, 2] - term.point[a, 2])
             hits = hits[dz <= cfg.search_z_tolerance_m + 0.1 * dists[k]]
+            gap = term.point[hits, :2] - term.point[a, :2]
+            gap /= np.maximum(np.linalg.norm(gap, axis=1), 1e-9)[:, None]
+            hits = hits[(gap @ term.out[a] >= cos_max) & (np.einsum("ij,ij->i", gap, -term.out[hits]) >= cos_max)]
             if len(hits):
                 off = np.linalg.norm(term.point[hits, :2] - term.predicted[a, k], axis=1)
                 proposals.append((float(dists[k]), float(off.min()), a, int(hits[np.argmin(off)])))
@@ -569,6 +575,10 @@ def _merge_overlap(a: np.ndarray, b: np.ndarray, clusters: Clusters, strong: np.
     inside = ~behind & ~ahead
     if not inside.any() or np.any(lateral[inside] > 2 * cfg.segment_tolerance_m):
         return None
+    for mask, end, u in ((behind, ca[0], da[0]), (ahead, ca[-1], da[-1])):
+        rel = cb[mask] - end
+        if np.any(np.abs(rel[:, 0] * u[1] - rel[:, 1] * u[0]) > cfg.search_radius_m):
+            return None
     cos_max = np.cos(np.radians(cfg.combine_max_angle_deg))
     seg_dir = seg[j] / seg_len[j, None]
     agree = np.einsum("ij,ij->i", db, seg_dir)
