@@ -190,8 +190,15 @@ def make_road(
         for i, w in enumerate([0.0, *lane_widths]):
             base += w
             last = i == len(lane_widths)
-            line = Line(f"opp{i}", float(base), "solid" if i in (0, len(lane_widths)) else "broken",
-                        0.30 if i == 0 or last else 0.15, 0.0, length, phase=float(rng.uniform(0.0, 18.0)))
+            line = Line(
+                f"opp{i}",
+                float(base),
+                "solid" if i in (0, len(lane_widths)) else "broken",
+                0.30 if i == 0 or last else 0.15,
+                0.0,
+                length,
+                phase=float(rng.uniform(0.0, 18.0)),
+            )
             for a in rng.uniform(0.0, length, int(length / 60)):
                 line.gaps.append((float(a), float(a) + 30.0))
             others.append(line)
@@ -381,7 +388,9 @@ def _in_taper(road: SynthRoad, s: np.ndarray, margin: float) -> np.ndarray:
     if road.exit_lane is None:
         return np.zeros(len(s), dtype=bool)
     s_a, s_b, taper = road.exit_lane
-    return ((s > s_a - margin) & (s < s_a + taper + margin)) | ((s > s_b - taper - margin) & (s < s_b + margin))
+    return ((s > s_a - margin) & (s < s_a + taper + margin)) | (
+        (s > s_b - taper - margin) & (s < s_b + margin)
+    )
 
 
 def _project_base(road: SynthRoad, xy: np.ndarray) -> np.ndarray:

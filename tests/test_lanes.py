@@ -35,16 +35,26 @@ def _build(road: SynthRoad) -> LaneModel:
 @pytest.fixture(scope="module")
 def curved() -> tuple[SynthRoad, LaneModel]:
     """Three 3.75 m lanes through a clothoid into R = 2000 m, GNSS noise, occlusions, strays, a guard rail."""
-    road = make_road([straight(250.0), clothoid(150.0, 0.0, 1 / 2000), arc(500.0, 2000.0)], gnss_noise=0.05,
-                     occlusions=8, guard_rail=12.0, seed=11)
+    road = make_road(
+        [straight(250.0), clothoid(150.0, 0.0, 1 / 2000), arc(500.0, 2000.0)],
+        gnss_noise=0.05,
+        occlusions=8,
+        guard_rail=12.0,
+        seed=11,
+    )
     return road, _build(road)
 
 
 @pytest.fixture(scope="module")
 def exit_lane() -> tuple[SynthRoad, LaneModel]:
     """A lane added on the right along 120 m tapers (solid edge moves out, a broken line stays)."""
-    road = make_road([straight(400.0), arc(800.0, -3000.0)], lane_widths=(3.5, 3.75), exit_lane=(400.0, 850.0, 120.0),
-                     gnss_noise=0.05, seed=12)
+    road = make_road(
+        [straight(400.0), arc(800.0, -3000.0)],
+        lane_widths=(3.5, 3.75),
+        exit_lane=(400.0, 850.0, 120.0),
+        gnss_noise=0.05,
+        seed=12,
+    )
     return road, _build(road)
 
 
@@ -53,8 +63,11 @@ def _lines(c: float, ys: list[float], n: int = 30, step: float = 18.0) -> list[C
     out = []
     for i, y in enumerate(ys):
         x = c + step * np.arange(n)
-        out.append(Candidate(i, np.column_stack([x, np.full(n, y), np.zeros(n)]), np.tile([1.0, 0.0], (n, 1)),
-                             np.arange(n)))
+        out.append(
+            Candidate(
+                i, np.column_stack([x, np.full(n, y), np.zeros(n)]), np.tile([1.0, 0.0], (n, 1)), np.arange(n)
+            )
+        )
     return out
 
 
@@ -77,8 +90,14 @@ def test_global_lookup_joins_pieces_beside_a_shared_neighbour() -> None:
     pieces = [(0, 15, -3.6), (26, 60, -3.6), (10, 40, -7.2)]
     for k, (a, b, y) in enumerate(pieces):
         x = 10.0 + 18.0 * np.arange(a, b)
-        cands.append(Candidate(2 + k, np.column_stack([x, np.full(len(x), y), np.zeros(len(x))]),
-                               np.tile([1.0, 0.0], (len(x), 1)), np.arange(len(x))))
+        cands.append(
+            Candidate(
+                2 + k,
+                np.column_stack([x, np.full(len(x), y), np.zeros(len(x))]),
+                np.tile([1.0, 0.0], (len(x), 1)),
+                np.arange(len(x)),
+            )
+        )
     lk = relative_lookups(candidate_segments(cands), LCFG)
     sl = global_lookup(len(cands), lk, lane_step(lk, LCFG), LCFG)
     assert sl[2] == sl[3], "two pieces of one line form one superline"
@@ -97,7 +116,9 @@ def test_straight_road_lanes_widths_and_marks() -> None:
     for b in model.boundaries:
         assert b.mark_width == pytest.approx(0.30 if b.mark_type == "solid" else 0.15, abs=0.05)
         if b.mark_type == "broken":
-            assert b.dash_length == pytest.approx(6.0, abs=0.5) and b.gap_length == pytest.approx(12.0, abs=0.5)
+            assert b.dash_length == pytest.approx(6.0, abs=0.5) and b.gap_length == pytest.approx(
+                12.0, abs=0.5
+            )
     # ids run left to right, offsets are measured from the road centre
     t_mid = [float(np.nanmedian(b.t)) for b in model.boundaries]
     assert t_mid == sorted(t_mid, reverse=True)
@@ -166,8 +187,14 @@ def test_added_lane_sections_grow_from_zero(exit_lane: tuple[SynthRoad, LaneMode
 
 
 def test_four_lanes_sparse_and_occluded() -> None:
-    road = make_road([straight(200.0), clothoid(150.0, 0.0, -1 / 1000), arc(300.0, -1000.0)],
-                     lane_widths=(3.5, 3.5, 3.75, 3.75), density=100.0, occlusions=16, ego_lane=0, seed=14)
+    road = make_road(
+        [straight(200.0), clothoid(150.0, 0.0, -1 / 1000), arc(300.0, -1000.0)],
+        lane_widths=(3.5, 3.5, 3.75, 3.75),
+        density=100.0,
+        occlusions=16,
+        ego_lane=0,
+        seed=14,
+    )
     model = _build(road)
     res = evaluate(model, road)
     assert {len(sec.boundary_ids) - 1 for sec in model.sections} == {4}
@@ -179,14 +206,26 @@ def test_single_line_and_empty_input_are_errors() -> None:
     road = make_road([straight(300.0)], lane_widths=(3.75,), ego_lane=0, occlusions=0, spurious=0, blobs=0)
     one = road.cloud.xyz[road.cloud.xyz[:, 1] > 2.0]
     cloud = road.cloud
-    cloud_one = type(cloud)(one, np.ones(len(one), np.float32), np.zeros(len(one), np.int32), np.zeros(len(one)),
-                            cloud.planes, cloud.trajectory)
+    cloud_one = type(cloud)(
+        one,
+        np.ones(len(one), np.float32),
+        np.zeros(len(one), np.int32),
+        np.zeros(len(one)),
+        cloud.planes,
+        cloud.trajectory,
+    )
     with pytest.raises(InputError, match="single line"):
         build_lane_model(cloud_one, find_candidates(one, MCFG), LCFG)
     with pytest.raises(InputError, match="no candidate"):
         build_lane_model(cloud, [], LCFG)
-    empty = type(cloud)(np.zeros((0, 3)), np.zeros(0, np.float32), np.zeros(0, np.int32), np.zeros(0),
-                        cloud.planes, cloud.trajectory)
+    empty = type(cloud)(
+        np.zeros((0, 3)),
+        np.zeros(0, np.float32),
+        np.zeros(0, np.int32),
+        np.zeros(0),
+        cloud.planes,
+        cloud.trajectory,
+    )
     with pytest.raises(InputError, match="no marking points"):
         build_lane_model(empty, [], LCFG, where="drive.ply")
 
@@ -221,8 +260,10 @@ def test_save_load_round_trip(exit_lane: tuple[SynthRoad, LaneModel], tmp_path: 
         assert np.array_equal(a.t, b.t, equal_nan=True)
     assert [vars(s) for s in back.sections] == [vars(s) for s in model.sections]
     assert len(back.candidates) == len(model.candidates)
-    assert all(np.array_equal(a.centers, b.centers) and a.superline == b.superline
-               for a, b in zip(model.candidates, back.candidates, strict=True))
+    assert all(
+        np.array_equal(a.centers, b.centers) and a.superline == b.superline
+        for a, b in zip(model.candidates, back.candidates, strict=True)
+    )
     assert back.warnings == model.warnings
     assert model_lines(back).keys() == model_lines(model).keys()
 
@@ -249,7 +290,9 @@ def test_load_rejects_malformed_files(exit_lane: tuple[SynthRoad, LaneModel], tm
         load_lanes(path)
 
 
-def test_lanes_command_writes_model_and_report(exit_lane: tuple[SynthRoad, LaneModel], tmp_path: Path) -> None:
+def test_lanes_command_writes_model_and_report(
+    exit_lane: tuple[SynthRoad, LaneModel], tmp_path: Path
+) -> None:
     from typer.testing import CliRunner
 
     from lidar2xodr.cli import app
@@ -258,8 +301,17 @@ def test_lanes_command_writes_model_and_report(exit_lane: tuple[SynthRoad, LaneM
     road, model = exit_lane
     save_markings(road.cloud, tmp_path / "markings.ply")
     runner = CliRunner()
-    res = runner.invoke(app, ["lanes", str(tmp_path / "markings.ply"), "-o", str(tmp_path / "lanes.json"),
-                              "--report", str(tmp_path / "rep")])
+    res = runner.invoke(
+        app,
+        [
+            "lanes",
+            str(tmp_path / "markings.ply"),
+            "-o",
+            str(tmp_path / "lanes.json"),
+            "--report",
+            str(tmp_path / "rep"),
+        ],
+    )
     assert res.exit_code == 0, res.output
     back = load_lanes(tmp_path / "lanes.json")
     assert [len(s.boundary_ids) for s in back.sections] == [len(s.boundary_ids) for s in model.sections]
@@ -273,8 +325,9 @@ def test_lanes_command_writes_model_and_report(exit_lane: tuple[SynthRoad, LaneM
 
 
 def test_other_carriageway_beyond_the_median_is_ignored() -> None:
-    road = make_road([straight(300.0), arc(500.0, 2500.0)], opposite=4.0, gnss_noise=0.05, lane_change_at=300.0,
-                     seed=21)
+    road = make_road(
+        [straight(300.0), arc(500.0, 2500.0)], opposite=4.0, gnss_noise=0.05, lane_change_at=300.0, seed=21
+    )
     model = _build(road)
     assert {len(sec.boundary_ids) - 1 for sec in model.sections} == {3}
     res = evaluate(model, road)

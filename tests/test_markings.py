@@ -13,8 +13,15 @@ from lidar2xodr.markings import cluster_markings, find_candidates
 CFG = MarkingsConfig()
 
 
-def _paint(rng: np.random.Generator, s0: float, s1: float, y: float, width: float, density: float = 300.0,
-           x0: float = 5.0) -> np.ndarray:
+def _paint(
+    rng: np.random.Generator,
+    s0: float,
+    s1: float,
+    y: float,
+    width: float,
+    density: float = 300.0,
+    x0: float = 5.0,
+) -> np.ndarray:
     """Points of a straight painted stripe along x (from x0 + s0 to x0 + s1) at lateral y."""
     n = rng.poisson(density * width * (s1 - s0))
     xs = rng.uniform(x0 + s0, x0 + s1, n)
@@ -22,8 +29,14 @@ def _paint(rng: np.random.Generator, s0: float, s1: float, y: float, width: floa
     return np.column_stack([xs, ys, rng.normal(0.0, 0.02, n)])
 
 
-def _dashed(rng: np.random.Generator, length: float, y: float, gaps: tuple[tuple[float, float], ...] = (),
-            dash: float = 6.0, gap: float = 12.0) -> tuple[np.ndarray, int]:
+def _dashed(
+    rng: np.random.Generator,
+    length: float,
+    y: float,
+    gaps: tuple[tuple[float, float], ...] = (),
+    dash: float = 6.0,
+    gap: float = 12.0,
+) -> tuple[np.ndarray, int]:
     parts, n_dash = [], 0
     for a in np.arange(0.0, length, dash + gap):
         if any(g0 <= a + dash and a <= g1 for g0, g1 in gaps):
@@ -58,8 +71,9 @@ def test_stray_points_do_not_move_the_centre() -> None:
 
 
 def test_long_solid_lines_are_sliced_along_the_curve() -> None:
-    road = make_road([arc(150.0, 100.0)], lane_widths=(3.5,), ego_lane=0, occlusions=0, spurious=0, blobs=0,
-                     seed=2)
+    road = make_road(
+        [arc(150.0, 100.0)], lane_widths=(3.5,), ego_lane=0, occlusions=0, spurious=0, blobs=0, seed=2
+    )
     cl = cluster_markings(road.cloud.xyz, CFG)
     # two solid edges of 150 m on a 100 m radius: about 25 slices each, all about 6 m long
     assert 44 <= len(cl) <= 56
@@ -83,8 +97,10 @@ def test_parallel_lines_with_blobs_between_stay_apart() -> None:
     rng = np.random.default_rng(4)
     left, _ = _dashed(rng, 400.0, 1.75)
     right, _ = _dashed(rng, 400.0, -1.75, gaps=((100.0, 130.0),))
-    blobs = [np.column_stack([rng.uniform(-1, 1, 40) + x, rng.uniform(-0.5, 0.5, 40) + y, np.zeros(40)])
-             for x, y in ((60.0, 0.0), (120.0, -0.6), (130.0, 0.4), (250.0, -0.2))]
+    blobs = [
+        np.column_stack([rng.uniform(-1, 1, 40) + x, rng.uniform(-0.5, 0.5, 40) + y, np.zeros(40)])
+        for x, y in ((60.0, 0.0), (120.0, -0.6), (130.0, 0.4), (250.0, -0.2))
+    ]
     cands = find_candidates(np.vstack([left, right, *blobs]), CFG)
     for c in cands:
         ys = c.centers[:, 1]
@@ -107,8 +123,14 @@ def test_candidates_are_deterministic() -> None:
 
 
 def test_road_lines_become_one_candidate_each() -> None:
-    road = make_road([straight(200.0), arc(400.0, 2000.0)], lane_widths=(3.75, 3.75, 3.75), occlusions=4,
-                     spurious=100, blobs=10, seed=6)
+    road = make_road(
+        [straight(200.0), arc(400.0, 2000.0)],
+        lane_widths=(3.75, 3.75, 3.75),
+        occlusions=4,
+        spurious=100,
+        blobs=10,
+        seed=6,
+    )
     cands = find_candidates(road.cloud.xyz, CFG)
     long = [c for c in cands if len(c.centers) >= 10]
     assert len(long) == 4

@@ -137,7 +137,9 @@ def split_candidates(candidates: list[Candidate], cfg: LanesConfig) -> tuple[lis
         bounds = sorted({0, len(ctr_k), *np.flatnonzero(cut).tolist(), *(leap + 1).tolist()})
         for a, b in zip(bounds[:-1], bounds[1:], strict=True):
             sel = idx[a:b]
-            pieces.append(Candidate(c.id, ctr[sel], np.asarray(c.directions)[sel], np.asarray(c.cluster_ids)[sel]))
+            pieces.append(
+                Candidate(c.id, ctr[sel], np.asarray(c.directions)[sel], np.asarray(c.cluster_ids)[sel])
+            )
             owner.append(i)
     return pieces, np.asarray(owner, dtype=np.int64)
 
@@ -190,7 +192,7 @@ def relative_lookups(segs: Segments, cfg: LanesConfig) -> Lookups:
     out: dict[str, list[np.ndarray]] = {k: [] for k in ("seg_a", "seg_b", "dist", "mu")}
     rays = np.flatnonzero(good)
     for a in range(0, len(rays), _CHUNK):
-        r = rays[a:a + _CHUNK]
+        r = rays[a : a + _CHUNK]
         hits = tree.query_ball_point(origin[r, :2], radius)
         counts = np.array([len(h) for h in hits])
         if counts.sum() == 0:
@@ -222,7 +224,9 @@ def relative_lookups(segs: Segments, cfg: LanesConfig) -> Lookups:
     order = np.lexsort((np.abs(dist), segs.cand[seg_b], side, seg_a))
     seg_a, seg_b, dist, mu, side = seg_a[order], seg_b[order], dist[order], mu[order], side[order]
     first = np.ones(len(seg_a), dtype=bool)
-    first[1:] = (seg_a[1:] != seg_a[:-1]) | (side[1:] != side[:-1]) | (segs.cand[seg_b][1:] != segs.cand[seg_b][:-1])
+    first[1:] = (
+        (seg_a[1:] != seg_a[:-1]) | (side[1:] != side[:-1]) | (segs.cand[seg_b][1:] != segs.cand[seg_b][:-1])
+    )
     seg_a, seg_b, dist, mu = seg_a[first], seg_b[first], dist[first], mu[first]
     hit = segs.p0[seg_b, :2] + mu[:, None] * d_xy[seg_b]
     offset_b = np.einsum("ij,ij->i", origin[seg_a, :2] - hit, normal[seg_b])
@@ -283,8 +287,11 @@ def global_lookup(n_cand: int, lookups: Lookups, step: float, cfg: LanesConfig) 
     if len(lookups.dist):
         pair = lookups.cand_a * n_cand + lookups.cand_b
         uniq, inv, cnt = np.unique(pair, return_inverse=True, return_counts=True)
-        med = np.array([np.median(np.abs(lookups.dist[inv == k])) for k in range(len(uniq))]) if len(uniq) < 2000 \
+        med = (
+            np.array([np.median(np.abs(lookups.dist[inv == k])) for k in range(len(uniq))])
+            if len(uniq) < 2000
             else _group_median(np.abs(lookups.dist), inv, len(uniq))
+        )
         for key, m, c in zip(uniq, med, cnt, strict=False):
             a, b = int(key // n_cand), int(key % n_cand)
             if c >= 2 and m > tol:
@@ -308,8 +315,9 @@ def _group_median(values: np.ndarray, inv: np.ndarray, n: int) -> np.ndarray:
     return 0.5 * (values[order][starts + (counts - 1) // 2] + values[order][starts + counts // 2])
 
 
-def _links_via_neighbours(lookups: Lookups, n_cand: int, tol: float, step: float,
-                          cfg: LanesConfig) -> list[tuple[float, float, int, int]]:
+def _links_via_neighbours(
+    lookups: Lookups, n_cand: int, tol: float, step: float, cfg: LanesConfig
+) -> list[tuple[float, float, int, int]]:
     """Paper's global lookup: X then Y along a shared neighbour B at the same offset from B."""
     pair = lookups.cand_b * n_cand + lookups.cand_a
     order = np.lexsort((lookups.pos_b, pair))
@@ -326,8 +334,16 @@ def _links_via_neighbours(lookups: Lookups, n_cand: int, tol: float, step: float
         tail = np.median(o[p >= min(p[-1] - 30.0, p[max(len(p) - 5, 0)])])
         if round(abs(head) / step) == 0 and round(abs(tail) / step) == 0:
             continue
-        rows.append((int(pair_s[s0] // n_cand), int(pair_s[s0] % n_cand), float(p[0]), float(p[-1]),
-                     float(head), float(tail)))
+        rows.append(
+            (
+                int(pair_s[s0] // n_cand),
+                int(pair_s[s0] % n_cand),
+                float(p[0]),
+                float(p[-1]),
+                float(head),
+                float(tail),
+            )
+        )
     links = []
     by_b: dict[int, list[tuple[int, float, float, float, float]]] = {}
     for b, x, p0, p1, head, tail in rows:
@@ -425,14 +441,15 @@ def _lam(cutoff_m: float, step: float) -> float:
     return (cutoff_m / (2.0 * math.pi * step)) ** 4
 
 
-def _robust_curve(k: np.ndarray, t: np.ndarray, n: int, lam: float,
-                  iters: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _robust_curve(
+    k: np.ndarray, t: np.ndarray, n: int, lam: float, iters: int = 3
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Robust t(s) on stations: Whittaker over the points' span with Tukey weights; NaN outside.
 
     Short islands of points (at most 10 m: a dash, a blob) that sit off the curve fitted without
     them (local refit over +-80 m) are dropped: a blob in a gap or an occluded stretch would
-    otherwise bend the line towards it. Returns the curve, the points' final weights and which stations are observed
-    (3 points or more, in runs of 3 stations or more).
+    otherwise bend the line towards it. Returns the curve, the points' final weights and which
+    stations are observed (3 points or more, in runs of 3 stations or more).
     """
     out = np.full(n, np.nan)
     w_pt = np.ones(len(t))
@@ -463,7 +480,7 @@ def _robust_curve(k: np.ndarray, t: np.ndarray, n: int, lam: float,
     if keep.sum() < 2:
         return out, w_pt, observed
     lo, hi = int(k[keep].min()), int(k[keep].max())
-    out[lo:hi + 1] = _whittaker_points(k[keep] - lo, t[keep], w_pt[keep], hi - lo + 1, lam)
+    out[lo : hi + 1] = _whittaker_points(k[keep] - lo, t[keep], w_pt[keep], hi - lo + 1, lam)
     return out, w_pt, observed
 
 
@@ -474,12 +491,13 @@ def _whittaker_points(k: np.ndarray, t: np.ndarray, w: np.ndarray, m: int, lam: 
     kk = k - lo
     sw = np.bincount(kk, w, hi - lo + 1)
     st = np.bincount(kk, w * t, hi - lo + 1)
-    out[lo:hi + 1] = _whittaker(np.where(sw > 0, st / np.maximum(sw, 1e-12), 0.0), sw, lam)
+    out[lo : hi + 1] = _whittaker(np.where(sw > 0, st / np.maximum(sw, 1e-12), 0.0), sw, lam)
     return out
 
 
-def _tukey_fit(k: np.ndarray, t: np.ndarray, w_pt: np.ndarray, n: int, lam: float,
-               iters: int) -> tuple[np.ndarray, float]:
+def _tukey_fit(
+    k: np.ndarray, t: np.ndarray, w_pt: np.ndarray, n: int, lam: float, iters: int
+) -> tuple[np.ndarray, float]:
     """Iteratively reweighted Whittaker fit: Tukey biweights of the points and the residual scale."""
     scale = 0.03
     for _ in range(iters):
@@ -555,7 +573,9 @@ def _first_frame(segs: Segments, lookups: Lookups, cfg: LanesConfig) -> Frame:
     uu = np.bincount(inv, u) / cnt
     fine = np.arange(uu[0], uu[-1] + 1e-9, 2.0) if uu[-1] > uu[0] else uu
     lam = _lam(2.0 * cfg.reference_smoothing_m, 2.0)
-    path = np.stack([_whittaker(np.interp(fine, uu, xy[:, k]), np.ones(len(fine)), lam) for k in range(2)], axis=1)
+    path = np.stack(
+        [_whittaker(np.interp(fine, uu, xy[:, k]), np.ones(len(fine)), lam) for k in range(2)], axis=1
+    )
     if len(path) < 3:
         raise InputError("marking cloud", "the markings cover less than a few metres of road")
     ext = np.arange(2.0, 40.0 + 1e-9, 2.0)[:, None]
@@ -575,8 +595,15 @@ class _Structure:
     t: np.ndarray  # (B, M) offsets including taper extensions
 
 
-def _lane_structure(t_fit: np.ndarray, support: np.ndarray, solid: np.ndarray, t_ego: np.ndarray | None,
-                    step: float, w_lane: float, cfg: LanesConfig) -> _Structure:
+def _lane_structure(
+    t_fit: np.ndarray,
+    support: np.ndarray,
+    solid: np.ndarray,
+    t_ego: np.ndarray | None,
+    step: float,
+    w_lane: float,
+    cfg: LanesConfig,
+) -> _Structure:
     """Which boundaries form the carriageway at each station, with tapers followed to zero width.
 
     Two rounds: the extensions found in the first (tapers, lines carried to the drive's ends) are
@@ -635,8 +662,14 @@ def _sorted_columns(t: np.ndarray, on: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return order, np.take_along_axis(np.where(on, t, np.nan), order, axis=0)
 
 
-def _choose_carriageway(t: np.ndarray, on: np.ndarray, t_ego: np.ndarray | None, solid: np.ndarray,
-                        support: np.ndarray, cfg: LanesConfig) -> np.ndarray:
+def _choose_carriageway(
+    t: np.ndarray,
+    on: np.ndarray,
+    t_ego: np.ndarray | None,
+    solid: np.ndarray,
+    support: np.ndarray,
+    cfg: LanesConfig,
+) -> np.ndarray:
     """Split into carriageways and keep the one with the ego (else the most lines, then most points).
 
     Splits: spacings above the widest lane, and a space between two solid lines that both have
@@ -648,8 +681,9 @@ def _choose_carriageway(t: np.ndarray, on: np.ndarray, t_ego: np.ndarray | None,
     present = np.isfinite(ts)
     gap = ts[:-1] - ts[1:]
     both_solid = solid[order[:-1]] & solid[order[1:]]
-    beyond = np.vstack([np.zeros((1, m), dtype=bool), present[:-2]]) & np.vstack([present[2:],
-                                                                                  np.zeros((1, m), dtype=bool)])
+    beyond = np.vstack([np.zeros((1, m), dtype=bool), present[:-2]]) & np.vstack(
+        [present[2:], np.zeros((1, m), dtype=bool)]
+    )
     median = both_solid & beyond & present[:-1] & present[1:]
     split = np.vstack([np.zeros((1, m), dtype=bool), ~(gap <= cfg.max_lane_width_m) | median])
     group = np.cumsum(split, axis=0)
@@ -679,8 +713,9 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1), strict=False))
 
 
-def _check_adjacency(t: np.ndarray, on: np.ndarray, rank: np.ndarray, step: float,
-                     cfg: LanesConfig) -> tuple[np.ndarray, list[tuple[int, int, int]]]:
+def _check_adjacency(
+    t: np.ndarray, on: np.ndarray, rank: np.ndarray, step: float, cfg: LanesConfig
+) -> tuple[np.ndarray, list[tuple[int, int, int]]]:
     """Every pair of neighbouring lines must hold a stable lane somewhere along their adjacency."""
     b_n, m = t.shape
     order, ts = _sorted_columns(t, on)
@@ -694,7 +729,9 @@ def _check_adjacency(t: np.ndarray, on: np.ndarray, rank: np.ndarray, step: floa
         at = (key == key_value).any(axis=0)
         w = np.where(key == key_value, width, 0.0).sum(axis=0)
         slope = np.abs(np.gradient(w)) / step
-        good = at & (w >= cfg.min_lane_width_m) & (w <= cfg.max_lane_width_m) & (slope < cfg.stable_lane_slope)
+        good = (
+            at & (w >= cfg.min_lane_width_m) & (w <= cfg.max_lane_width_m) & (slope < cfg.stable_lane_slope)
+        )
         stable_len[int(key_value)] = max((e - s for s, e in _runs(good)), default=0)
     count = on.sum(axis=0)
     on = on.copy()
@@ -727,8 +764,9 @@ def _clean_runs(on: np.ndarray, min_run: int) -> np.ndarray:
     return out
 
 
-def _follow_tapers(t: np.ndarray, on: np.ndarray, step: float, w_lane: float,
-                   cfg: LanesConfig) -> tuple[np.ndarray, np.ndarray]:
+def _follow_tapers(
+    t: np.ndarray, on: np.ndarray, step: float, w_lane: float, cfg: LanesConfig
+) -> tuple[np.ndarray, np.ndarray]:
     """Extend boundaries that appear or end back (forward) to where their new lane has zero width."""
     t = t.copy()
     on = on.copy()
@@ -772,8 +810,9 @@ def _hold_to(t: np.ndarray, on: np.ndarray, b: int, start: int, end: int) -> Non
     on[b, span] = True
 
 
-def _extend(t: np.ndarray, on: np.ndarray, b: int, start: int, inward: int, probe: int, reach: int,
-            w_lane: float) -> bool:
+def _extend(
+    t: np.ndarray, on: np.ndarray, b: int, start: int, inward: int, probe: int, reach: int, w_lane: float
+) -> bool:
     """Follow boundary b from station `start` outwards (against `inward`) while its new lane closes."""
     window = np.arange(start, start + inward * probe, inward)
     window = window[(window >= 0) & (window < t.shape[1])]
@@ -824,8 +863,9 @@ def _extend(t: np.ndarray, on: np.ndarray, b: int, start: int, inward: int, prob
     return True
 
 
-def _sections(on: np.ndarray, t: np.ndarray, s: np.ndarray,
-              min_len: float) -> tuple[list[LaneSection], np.ndarray, np.ndarray]:
+def _sections(
+    on: np.ndarray, t: np.ndarray, s: np.ndarray, min_len: float
+) -> tuple[list[LaneSection], np.ndarray, np.ndarray]:
     """Runs of a constant boundary set (left to right); short runs and holes join a neighbour.
 
     A merged stretch takes the neighbour's boundaries; their offsets are interpolated (held at
@@ -854,9 +894,9 @@ def _sections(on: np.ndarray, t: np.ndarray, s: np.ndarray,
             break
         j = max(nbs, key=lambda q: (length(runs[q]), -q))
         a, b = runs[i][0], runs[i][1]
-        on[:, a:b + 1] = False
+        on[:, a : b + 1] = False
         for x in runs[j][2]:
-            on[x, a:b + 1] = True
+            on[x, a : b + 1] = True
             fin = np.flatnonzero(np.isfinite(t[x]))
             gap = np.arange(a, b + 1)
             miss = gap[~np.isfinite(t[x, gap])]
@@ -874,7 +914,7 @@ def _sections(on: np.ndarray, t: np.ndarray, s: np.ndarray,
     runs = [r for r in runs if r[2]]
     out = []
     for k, (a, b, c) in enumerate(runs):
-        ids = sorted(c, key=lambda x: -float(np.nanmedian(t[x, a:b + 1])))
+        ids = sorted(c, key=lambda x: -float(np.nanmedian(t[x, a : b + 1])))
         s_end = s[b + 1] if k + 1 < len(runs) else s[b]
         out.append(LaneSection(float(s[a]), float(s_end), [int(i) for i in ids]))
     return out, on, np.where(on, t, np.nan)
@@ -988,8 +1028,9 @@ def marking_widths(residuals: list[np.ndarray]) -> list[float | None]:
 # the stage
 
 
-def build_lane_model(cloud: MarkingCloud, candidates: list[Candidate], cfg: LanesConfig,
-                     where: str = "marking cloud") -> LaneModel:
+def build_lane_model(
+    cloud: MarkingCloud, candidates: list[Candidate], cfg: LanesConfig, where: str = "marking cloud"
+) -> LaneModel:
     """Paper Alg. 2 and beyond: superlines, boundaries t(s), sections and the reference line."""
     xyz = np.asarray(cloud.xyz, dtype=np.float64)
     if len(xyz) == 0:
@@ -1002,9 +1043,12 @@ def build_lane_model(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lane
     lookups = relative_lookups(segs, cfg)
     w_lane = lane_step(lookups, cfg)
     if w_lane is None:
-        raise InputError(where, "found no two parallel marking lines "
-                                f"{cfg.min_lane_width_m:g}-{cfg.max_lane_width_m:g} m apart: a single line "
-                                "(or none) cannot give lanes")
+        raise InputError(
+            where,
+            "found no two parallel marking lines "
+            f"{cfg.min_lane_width_m:g}-{cfg.max_lane_width_m:g} m apart: a single line "
+            "(or none) cannot give lanes",
+        )
     superline = global_lookup(len(pieces), lookups, w_lane, cfg)
     frame = _first_frame(segs, lookups, cfg)
     warnings: list[str] = []
@@ -1021,7 +1065,9 @@ def build_lane_model(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lane
         fit.t[short] = np.nan
         t_ego = _ego_offsets(frame, ego)
         active = np.flatnonzero(np.isfinite(fit.t).any(axis=1))
-        solid = np.array([_mark_pattern(s_pt[(label == b) & inside], cfg)[0] == "solid" for b in active], dtype=bool)
+        solid = np.array(
+            [_mark_pattern(s_pt[(label == b) & inside], cfg)[0] == "solid" for b in active], dtype=bool
+        )
         sub = _lane_structure(fit.t[active], fit.support[active], solid, t_ego, step, w_lane, cfg)
         structure = _Structure(np.zeros(fit.t.shape, dtype=bool), np.full(fit.t.shape, np.nan))
         structure.on[active], structure.t[active] = sub.on, sub.t
@@ -1035,8 +1081,10 @@ def build_lane_model(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lane
             frame = _recentre(frame, structure, cfg)
     assert structure is not None and fit is not None
     if n_short:
-        warnings.append(f"ignored {n_short} marking pieces shorter than {cfg.min_section_length_m:g} m "
-                        "(stray returns, blobs, arrows)")
+        warnings.append(
+            f"ignored {n_short} marking pieces shorter than {cfg.min_section_length_m:g} m "
+            "(stray returns, blobs, arrows)"
+        )
     pts = _Points(k_pt, t_pt, s_pt, inside, label, xyz[:, 2])
     model = _assemble(cloud, pieces, superline, frame, fit, structure, pts, warnings, cfg)
     longest: dict[int, tuple[int, int]] = {}
@@ -1062,8 +1110,16 @@ def _stations(frame: Frame, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.
     return k, t, inside, s
 
 
-def _fit_boundaries(k: np.ndarray, t: np.ndarray, label: np.ndarray, inside: np.ndarray, n_sl: int, m: int,
-                    lam: float, gap: int) -> _Fit:
+def _fit_boundaries(
+    k: np.ndarray,
+    t: np.ndarray,
+    label: np.ndarray,
+    inside: np.ndarray,
+    n_sl: int,
+    m: int,
+    lam: float,
+    gap: int,
+) -> _Fit:
     out = np.full((n_sl, m), np.nan)
     support = np.zeros(n_sl)
     use = (label >= 0) & inside
@@ -1090,13 +1146,13 @@ def _bridge_gaps(t: np.ndarray, observed: np.ndarray, gap: int) -> None:
         if len(fin) == 0:
             continue
         inner = np.zeros(t.shape[1], dtype=bool)
-        inner[fin[0]:fin[-1] + 1] = True
+        inner[fin[0] : fin[-1] + 1] = True
         for g0, g1 in _runs(inner & ~observed[b]):
             if g1 - g0 < gap or g0 == 0 or g1 >= t.shape[1]:
                 continue
             best, best_key = None, None
             for nb in range(len(t)):
-                if nb == b or not np.all(np.isfinite(t[nb, g0 - 1:g1 + 1])):
+                if nb == b or not np.all(np.isfinite(t[nb, g0 - 1 : g1 + 1])):
                     continue
                 key = (float(observed[nb, g0:g1].mean()), -abs(float(t[nb, g0] - t[b, g0])))
                 if key[0] >= 0.25 and (best_key is None or key > best_key):
@@ -1118,8 +1174,9 @@ def _ego_offsets(frame: Frame, ego: np.ndarray | None) -> np.ndarray | None:
     return np.interp(frame.s, s[inside][order], t[inside][order], left=np.nan, right=np.nan)
 
 
-def _label_by_candidates(xy: np.ndarray, candidates: list[Candidate], superline: np.ndarray,
-                         cfg: LanesConfig) -> np.ndarray:
+def _label_by_candidates(
+    xy: np.ndarray, candidates: list[Candidate], superline: np.ndarray, cfg: LanesConfig
+) -> np.ndarray:
     """Superline of every point through the nearest candidate polyline (dash ends included)."""
     pts, owner = [], []
     for i, c in enumerate(candidates):
@@ -1170,8 +1227,9 @@ def _hold_ends(curves: np.ndarray, reach: int, tol: float) -> np.ndarray:
     return out
 
 
-def _label_by_distance(k: np.ndarray, t: np.ndarray, inside: np.ndarray, curves: np.ndarray,
-                       cfg: LanesConfig) -> np.ndarray:
+def _label_by_distance(
+    k: np.ndarray, t: np.ndarray, inside: np.ndarray, curves: np.ndarray, cfg: LanesConfig
+) -> np.ndarray:
     """Superline of every point: the nearest fitted curve at its station, within assign_distance_m."""
     label = np.full(len(t), -1, dtype=np.int64)
     for a in range(0, len(t), 200000):
@@ -1207,7 +1265,9 @@ def _recentre(frame: Frame, structure: _Structure, cfg: LanesConfig) -> Frame:
     return Frame(frame.point(centre)[a:b], frame.s[1] - frame.s[0])
 
 
-def _reference_z(k: np.ndarray, t: np.ndarray, z: np.ndarray, use: np.ndarray, m: int, step: float) -> np.ndarray:
+def _reference_z(
+    k: np.ndarray, t: np.ndarray, z: np.ndarray, use: np.ndarray, m: int, step: float
+) -> np.ndarray:
     """Height of the road at t = 0: a plane across the road per 5 m window, smoothed along s."""
     k, t, z = k[use], t[use], z[use]
     if len(z) == 0:
@@ -1239,8 +1299,17 @@ class _Points:
     z: np.ndarray
 
 
-def _assemble(cloud: MarkingCloud, candidates: list[Candidate], superline: np.ndarray, frame: Frame, fit: _Fit,
-              structure: _Structure, pts: _Points, warnings: list[str], cfg: LanesConfig) -> LaneModel:
+def _assemble(
+    cloud: MarkingCloud,
+    candidates: list[Candidate],
+    superline: np.ndarray,
+    frame: Frame,
+    fit: _Fit,
+    structure: _Structure,
+    pts: _Points,
+    warnings: list[str],
+    cfg: LanesConfig,
+) -> LaneModel:
     """Trim to the measured road, number boundaries left to right, classify them, write the model."""
     label, k_pt, t_pt, inside, s_pt = pts.label, pts.k, pts.t, pts.inside, pts.s
     step = frame.s[1] - frame.s[0]
@@ -1267,9 +1336,16 @@ def _assemble(cloud: MarkingCloud, candidates: list[Candidate], superline: np.nd
     for old, width in zip(ordered, widths, strict=True):
         sel = (label == old) & inside
         kind, dash, gap = _mark_pattern(s_pt[sel], cfg)
-        boundaries.append(Boundary(id=int(new_id[old]), t=np.where(on[old], t[old], np.nan), mark_type=kind,
-                                   mark_width=round(width, 3) if width is not None else 0.15,
-                                   dash_length=dash, gap_length=gap))
+        boundaries.append(
+            Boundary(
+                id=int(new_id[old]),
+                t=np.where(on[old], t[old], np.nan),
+                mark_type=kind,
+                mark_width=round(width, 3) if width is not None else 0.15,
+                dash_length=dash,
+                gap_length=gap,
+            )
+        )
     sections, on_new, t_new = _sections(on[ordered], t[ordered], s, cfg.min_section_length_m)
     for i, bnd in enumerate(boundaries):
         bnd.t = t_new[i]
@@ -1278,10 +1354,19 @@ def _assemble(cloud: MarkingCloud, candidates: list[Candidate], superline: np.nd
     warnings.extend(_unused_notes(fit.t[:, a:b], on_new, ordered, s))
     counts = [len(sec.boundary_ids) - 1 for sec in sections]
     if len(set(counts)) > 1:
-        warnings.append("lane count changes along the road: " + ", ".join(
-            f"{n} from s {sec.s_start:.0f} m" for n, sec in zip(counts, sections, strict=False)))
-    return LaneModel(s=s, reference=reference, boundaries=boundaries, sections=sections, candidates=candidates,
-                     origin=cloud.origin, warnings=warnings)
+        warnings.append(
+            "lane count changes along the road: "
+            + ", ".join(f"{n} from s {sec.s_start:.0f} m" for n, sec in zip(counts, sections, strict=False))
+        )
+    return LaneModel(
+        s=s,
+        reference=reference,
+        boundaries=boundaries,
+        sections=sections,
+        candidates=candidates,
+        origin=cloud.origin,
+        warnings=warnings,
+    )
 
 
 def _unused_notes(t_fit: np.ndarray, on: np.ndarray, ordered: np.ndarray, s: np.ndarray) -> list[str]:
@@ -1294,11 +1379,15 @@ def _unused_notes(t_fit: np.ndarray, on: np.ndarray, ordered: np.ndarray, s: np.
         spans = [(a, b) for a, b in _runs(unused) if s[b - 1] - s[a] >= 1.0]
         if not spans:
             continue
-        where = ", ".join(f"{s[a]:.0f}-{s[b - 1]:.0f}" for a, b in spans[:3]) + (" ..." if len(spans) > 3 else "")
+        where = ", ".join(f"{s[a]:.0f}-{s[b - 1]:.0f}" for a, b in spans[:3]) + (
+            " ..." if len(spans) > 3 else ""
+        )
         t_med = float(np.nanmedian(t_fit[x][unused]))
         name = f"boundary {row[x]}" if x in row else "a marking line"
-        notes.append(f"{name} ({t_med:+.1f} m from the reference) ignored on s {where} m: off the carriageway, "
-                     "a duplicate, or no stable lane beside it")
+        notes.append(
+            f"{name} ({t_med:+.1f} m from the reference) ignored on s {where} m: off the carriageway, "
+            "a duplicate, or no stable lane beside it"
+        )
     return notes
 
 
@@ -1309,8 +1398,11 @@ def _unused_notes(t_fit: np.ndarray, on: np.ndarray, ordered: np.ndarray, s: np.
 def _num(a: np.ndarray) -> list:
     """Array as nested lists with NaN as null (JSON has no NaN)."""
     arr = np.asarray(a, dtype=np.float64)
-    return [None if not math.isfinite(v) else float(v) for v in arr.ravel()] if arr.ndim == 1 else \
-        [_num(row) for row in arr]
+    return (
+        [None if not math.isfinite(v) else float(v) for v in arr.ravel()]
+        if arr.ndim == 1
+        else [_num(row) for row in arr]
+    )
 
 
 def save_lanes(model: LaneModel, path: str | Path) -> None:
@@ -1320,19 +1412,36 @@ def save_lanes(model: LaneModel, path: str | Path) -> None:
         "s": _num(model.s),
         "reference": _num(model.reference),
         "boundaries": [
-            {"id": b.id, "t": _num(b.t), "mark_type": b.mark_type, "mark_width": float(b.mark_width),
-             "dash_length": b.dash_length, "gap_length": b.gap_length}
+            {
+                "id": b.id,
+                "t": _num(b.t),
+                "mark_type": b.mark_type,
+                "mark_width": float(b.mark_width),
+                "dash_length": b.dash_length,
+                "gap_length": b.gap_length,
+            }
             for b in model.boundaries
         ],
-        "sections": [{"s_start": sec.s_start, "s_end": sec.s_end, "boundary_ids": list(sec.boundary_ids)}
-                     for sec in model.sections],
+        "sections": [
+            {"s_start": sec.s_start, "s_end": sec.s_end, "boundary_ids": list(sec.boundary_ids)}
+            for sec in model.sections
+        ],
         "candidates": [
-            {"id": c.id, "superline": c.superline, "centers": _num(c.centers), "directions": _num(c.directions),
-             "cluster_ids": [int(i) for i in c.cluster_ids]}
+            {
+                "id": c.id,
+                "superline": c.superline,
+                "centers": _num(c.centers),
+                "directions": _num(c.directions),
+                "cluster_ids": [int(i) for i in c.cluster_ids],
+            }
             for c in model.candidates
         ],
-        "origin": {"lat": model.origin.lat, "lon": model.origin.lon, "alt": model.origin.alt,
-                   "proj": model.origin.proj},
+        "origin": {
+            "lat": model.origin.lat,
+            "lon": model.origin.lon,
+            "alt": model.origin.alt,
+            "proj": model.origin.proj,
+        },
         "warnings": list(model.warnings),
     }
     write_text(path, json.dumps(data, separators=(",", ":"), sort_keys=True) + "\n")
@@ -1340,15 +1449,23 @@ def save_lanes(model: LaneModel, path: str | Path) -> None:
 
 def _arr(value: object, shape_tail: tuple[int, ...], where: str, name: str) -> np.ndarray:
     try:
-        arr = np.array([[np.nan if v is None else v for v in row] for row in value] if shape_tail
-                       else [np.nan if v is None else v for v in value], dtype=np.float64)  # type: ignore[union-attr]
+        arr = np.array(
+            [[np.nan if v is None else v for v in row] for row in value]
+            if shape_tail
+            else [np.nan if v is None else v for v in value],
+            dtype=np.float64,
+        )  # type: ignore[union-attr]
     except (TypeError, ValueError):
         raise InputError(where, f"{name} is not a list of numbers") from None
     if len(arr) == 0 and shape_tail:
         arr = arr.reshape(0, *shape_tail)
     if arr.shape[1:] != shape_tail:
-        raise InputError(where, f"{name} has shape {arr.shape}, expected (n, {', '.join(map(str, shape_tail))})"
-                         if shape_tail else f"{name} has shape {arr.shape}, expected (n,)")
+        raise InputError(
+            where,
+            f"{name} has shape {arr.shape}, expected (n, {', '.join(map(str, shape_tail))})"
+            if shape_tail
+            else f"{name} has shape {arr.shape}, expected (n,)",
+        )
     return arr
 
 
@@ -1376,27 +1493,48 @@ def load_lanes(path: str | Path) -> LaneModel:
                 raise InputError(where, f"t has {len(t)} values for {len(s)} stations")
             if b["mark_type"] not in ("solid", "broken"):
                 raise InputError(where, f"mark_type {b['mark_type']!r} (solid or broken)")
-            boundaries.append(Boundary(int(b["id"]), t, str(b["mark_type"]), float(b["mark_width"]),
-                                       None if b["dash_length"] is None else float(b["dash_length"]),
-                                       None if b["gap_length"] is None else float(b["gap_length"])))
+            boundaries.append(
+                Boundary(
+                    int(b["id"]),
+                    t,
+                    str(b["mark_type"]),
+                    float(b["mark_width"]),
+                    None if b["dash_length"] is None else float(b["dash_length"]),
+                    None if b["gap_length"] is None else float(b["gap_length"]),
+                )
+            )
         ids = {b.id for b in boundaries}
         sections = []
         for j, sec in enumerate(data["sections"]):
             bad = [i for i in sec["boundary_ids"] if i not in ids]
             if bad:
                 raise InputError(f"{path} section {j}", f"names unknown boundaries {bad}")
-            sections.append(LaneSection(float(sec["s_start"]), float(sec["s_end"]),
-                                        [int(i) for i in sec["boundary_ids"]]))
+            sections.append(
+                LaneSection(float(sec["s_start"]), float(sec["s_end"]), [int(i) for i in sec["boundary_ids"]])
+            )
         candidates = []
         for c in data["candidates"]:
             where = f"{path} candidate {c.get('id')}"
-            candidates.append(Candidate(int(c["id"]), _arr(c["centers"], (3,), where, "centers"),
-                                        _arr(c["directions"], (2,), where, "directions"),
-                                        np.asarray(c["cluster_ids"], dtype=np.int64), int(c["superline"])))
+            candidates.append(
+                Candidate(
+                    int(c["id"]),
+                    _arr(c["centers"], (3,), where, "centers"),
+                    _arr(c["directions"], (2,), where, "directions"),
+                    np.asarray(c["cluster_ids"], dtype=np.int64),
+                    int(c["superline"]),
+                )
+            )
         o = data["origin"]
         origin = GeoOrigin(o["lat"], o["lon"], float(o["alt"]), o["proj"])
         warnings = [str(w) for w in data["warnings"]]
     except (KeyError, TypeError, AttributeError) as exc:
         raise InputError(path, f"malformed lane model: missing or wrong field {exc}") from None
-    return LaneModel(s=s, reference=ref, boundaries=boundaries, sections=sections, candidates=candidates,
-                     origin=origin, warnings=warnings)
+    return LaneModel(
+        s=s,
+        reference=ref,
+        boundaries=boundaries,
+        sections=sections,
+        candidates=candidates,
+        origin=origin,
+        warnings=warnings,
+    )

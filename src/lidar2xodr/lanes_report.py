@@ -52,12 +52,24 @@ def _draw_overview(ax: plt.Axes, cloud: MarkingCloud, model: LaneModel) -> None:
     ax.scatter(xyz[:, 0], xyz[:, 1], s=0.05, c="#9ab", lw=0, label="marking points")
     for k, c in enumerate(model.candidates):
         ctr = np.asarray(c.centers)
-        ax.plot(ctr[:, 0], ctr[:, 1], "-", color=_colour(c.superline), lw=0.6,
-                label="candidates by superline" if k == 0 else None)
+        ax.plot(
+            ctr[:, 0],
+            ctr[:, 1],
+            "-",
+            color=_colour(c.superline),
+            lw=0.6,
+            label="candidates by superline" if k == 0 else None,
+        )
     kinds = {b.id: b.mark_type for b in model.boundaries}
     for i, (bid, xy) in enumerate(sorted(boundary_xy(model).items())):
-        ax.plot(xy[:, 0], xy[:, 1], "--" if kinds[bid] == "broken" else "-", color="k", lw=1.0,
-                label="boundaries" if i == 0 else None)
+        ax.plot(
+            xy[:, 0],
+            xy[:, 1],
+            "--" if kinds[bid] == "broken" else "-",
+            color="k",
+            lw=1.0,
+            label="boundaries" if i == 0 else None,
+        )
     ref = np.asarray(model.reference)
     if len(ref):
         ax.plot(ref[:, 0], ref[:, 1], "-", color="#a2c", lw=1.2, label="reference line")
@@ -92,8 +104,14 @@ def _draw_detail(ax: plt.Axes, cloud: MarkingCloud, model: LaneModel, frame: Fra
     s = np.asarray(model.s)
     win = (s >= lo) & (s <= hi)
     for i, b in enumerate(model.boundaries):
-        ax.plot(s[win], np.asarray(b.t)[win], "--" if b.mark_type == "broken" else "-", color="k", lw=1.2,
-                label="boundaries" if i == 0 else None)
+        ax.plot(
+            s[win],
+            np.asarray(b.t)[win],
+            "--" if b.mark_type == "broken" else "-",
+            color="k",
+            lw=1.2,
+            label="boundaries" if i == 0 else None,
+        )
     ax.axhline(0.0, color="#a2c", lw=1.2, label="reference line")
     ax.set_xlim(lo, hi)
     ax.set_xlabel("s along the reference [m]")
@@ -120,8 +138,11 @@ def plot_lane_model(cloud: MarkingCloud, model: LaneModel, path: str | Path) -> 
     ax = fig.add_subplot(grid[0, :])
     _draw_overview(ax, cloud, model)
     counts = ", ".join(f"{len(sec.boundary_ids) - 1} from {sec.s_start:.0f} m" for sec in model.sections)
-    ax.set_title(f"Lanes from markings: {len(model.candidates)} candidates, {len(model.boundaries)} boundaries, "
-                 f"lanes {counts}", fontsize=10)
+    ax.set_title(
+        f"Lanes from markings: {len(model.candidates)} candidates, {len(model.boundaries)} boundaries, "
+        f"lanes {counts}",
+        fontsize=10,
+    )
     ax.legend(loc="best", fontsize=7, markerscale=6)
     if details:
         frame = Frame(np.asarray(model.reference)[:, :2], float(np.median(np.diff(model.s))))

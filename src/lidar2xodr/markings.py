@@ -147,7 +147,7 @@ def _slice_long(xyz: np.ndarray, labels: np.ndarray, cfg: MarkingsConfig) -> np.
     out = labels.copy()
     next_id = len(starts)
     for c in long:
-        idx = order[starts[c]:starts[c] + sizes[c]]
+        idx = order[starts[c] : starts[c] + sizes[c]]
         part = _geodesic_slices(xyz[idx, :2], cfg.slice_threshold_m, cfg.slice_length_m)
         more = part > 0
         out[idx[more]] = next_id + part[more] - 1
@@ -182,8 +182,9 @@ def _geodesic_slices(xy: np.ndarray, threshold: float, length: float) -> np.ndar
     return slice_of_cell[inverse]
 
 
-def _line_fit(pts: np.ndarray, starts: np.ndarray, sizes: np.ndarray,
-              cfg: MarkingsConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _line_fit(
+    pts: np.ndarray, starts: np.ndarray, sizes: np.ndarray, cfg: MarkingsConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Seeded RANSAC line per cluster (vectorised over clusters), refined on its inliers.
 
     Returns centres, directions, lengths (inliers along the line) and widths (all points across it,
@@ -274,7 +275,9 @@ def search_mark(clusters: Clusters, cfg: MarkingsConfig) -> list[np.ndarray]:
             found, d = _next_center(tree, centers, visited, bases, v, steps, cfg)
             if found < 0:
                 break
-            between = _on_segment(tree, centers, visited, centers[base], centers[found], cfg.segment_tolerance_m)
+            between = _on_segment(
+                tree, centers, visited, centers[base], centers[found], cfg.segment_tolerance_m
+            )
             for i in [*[b for b in between if b != found], found]:
                 visited[i] = True
                 chain.append(int(i))
@@ -293,8 +296,15 @@ def search_mark(clusters: Clusters, cfg: MarkingsConfig) -> list[np.ndarray]:
     return chains
 
 
-def _next_center(tree: cKDTree, centers: np.ndarray, visited: np.ndarray, bases: list[int], v: np.ndarray,
-                 steps: np.ndarray, cfg: MarkingsConfig) -> tuple[int, float]:
+def _next_center(
+    tree: cKDTree,
+    centers: np.ndarray,
+    visited: np.ndarray,
+    bases: list[int],
+    v: np.ndarray,
+    steps: np.ndarray,
+    cfg: MarkingsConfig,
+) -> tuple[int, float]:
     """The unvisited centre nearest to c + v * d in the first step d that finds one (-1 if none)."""
     cur = centers[bases[-1]]
     slope = 0.0
@@ -314,8 +324,9 @@ def _next_center(tree: cKDTree, centers: np.ndarray, visited: np.ndarray, bases:
     return -1, 0.0
 
 
-def _on_segment(tree: cKDTree, centers: np.ndarray, visited: np.ndarray, a: np.ndarray, b: np.ndarray,
-                tol: float) -> list[int]:
+def _on_segment(
+    tree: cKDTree, centers: np.ndarray, visited: np.ndarray, a: np.ndarray, b: np.ndarray, tol: float
+) -> list[int]:
     """Unvisited centres within `tol` of the segment a-b (strictly between), ordered from a to b."""
     ab = b[:2] - a[:2]
     length = float(np.linalg.norm(ab))
@@ -328,7 +339,9 @@ def _on_segment(tree: cKDTree, centers: np.ndarray, visited: np.ndarray, a: np.n
     rel = centers[hits, :2] - a[:2]
     along = rel @ ab / length**2
     lateral = np.abs(rel[:, 0] * ab[1] - rel[:, 1] * ab[0]) / length
-    ok = (along > 0) & (along < 1) & (lateral <= tol) & (np.abs(centers[hits, 2] - a[2]) <= 1.0 + 0.1 * length)
+    ok = (
+        (along > 0) & (along < 1) & (lateral <= tol) & (np.abs(centers[hits, 2] - a[2]) <= 1.0 + 0.1 * length)
+    )
     sel = hits[ok]
     return [int(i) for i in sel[np.argsort(along[ok], kind="stable")]]
 
@@ -388,7 +401,7 @@ def _terminals(chains: list[np.ndarray], clusters: Clusters, cfg: MarkingsConfig
     pts, outs, preds, valid = [], [], [], []
     for chain in chains:
         keep = np.flatnonzero(strong[chain])
-        core = chain[keep[0]:keep[-1] + 1] if len(keep) else chain
+        core = chain[keep[0] : keep[-1] + 1] if len(keep) else chain
         d = _chain_dirs(core, clusters)
         for seq, u in ((core[::-1], -d[0]), (core, d[-1])):
             xy = clusters.centers[seq, :2]
@@ -397,8 +410,12 @@ def _terminals(chains: list[np.ndarray], clusters: Clusters, cfg: MarkingsConfig
             outs.append(o)
             preds.append(p)
             valid.append(len(keep) > 0)
-    return _Terminal(np.array(pts).reshape(-1, 3), np.array(outs).reshape(-1, 2),
-                     np.array(preds).reshape(-1, len(dists), 2), np.array(valid, dtype=bool))
+    return _Terminal(
+        np.array(pts).reshape(-1, 3),
+        np.array(outs).reshape(-1, 2),
+        np.array(preds).reshape(-1, len(dists), 2),
+        np.array(valid, dtype=bool),
+    )
 
 
 def _elongated(clusters: Clusters, cfg: MarkingsConfig) -> np.ndarray:
@@ -406,7 +423,9 @@ def _elongated(clusters: Clusters, cfg: MarkingsConfig) -> np.ndarray:
     return clusters.lengths >= np.maximum(cfg.min_direction_length_m, 3.0 * clusters.widths)
 
 
-def _extrapolate(xy: np.ndarray, u: np.ndarray, dists: np.ndarray, span: float = 60.0) -> tuple[np.ndarray, np.ndarray]:
+def _extrapolate(
+    xy: np.ndarray, u: np.ndarray, dists: np.ndarray, span: float = 60.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Outward direction and expected positions beyond the last point of an ordered polyline."""
     last = xy[-1]
     seg = np.linalg.norm(np.diff(xy, axis=0), axis=1)
@@ -467,7 +486,9 @@ def _link_terminals(chains: list[np.ndarray], clusters: Clusters, cfg: MarkingsC
             hits = hits[dz <= cfg.search_z_tolerance_m + 0.1 * dists[k]]
             gap = term.point[hits, :2] - term.point[a, :2]
             gap /= np.maximum(np.linalg.norm(gap, axis=1), 1e-9)[:, None]
-            hits = hits[(gap @ term.out[a] >= cos_max) & (np.einsum("ij,ij->i", gap, -term.out[hits]) >= cos_max)]
+            hits = hits[
+                (gap @ term.out[a] >= cos_max) & (np.einsum("ij,ij->i", gap, -term.out[hits]) >= cos_max)
+            ]
             if len(hits):
                 off = np.linalg.norm(term.point[hits, :2] - term.predicted[a, k], axis=1)
                 proposals.append((float(dists[k]), float(off.min()), a, int(hits[np.argmin(off)])))
@@ -515,7 +536,9 @@ def _absorb(chains: list[np.ndarray], clusters: Clusters, cfg: MarkingsConfig) -
             hits = hits[owner[hits] != b]
             if len(hits) == 0:
                 continue
-            a = int(owner[hits[np.argmin(np.linalg.norm(samples[hits, :2] - clusters.centers[end, :2], axis=1))]])
+            a = int(
+                owner[hits[np.argmin(np.linalg.norm(samples[hits, :2] - clusters.centers[end, :2], axis=1))]]
+            )
             ra, rb = uf.find(a), uf.find(b)
             if ra == rb:
                 continue
@@ -547,8 +570,9 @@ def _densify(chains: list[np.ndarray], centers: np.ndarray, step: float) -> tupl
     return np.vstack(pts), np.concatenate(owner)
 
 
-def _merge_overlap(a: np.ndarray, b: np.ndarray, clusters: Clusters, strong: np.ndarray,
-                   cfg: MarkingsConfig) -> np.ndarray | None:
+def _merge_overlap(
+    a: np.ndarray, b: np.ndarray, clusters: Clusters, strong: np.ndarray, cfg: MarkingsConfig
+) -> np.ndarray | None:
     """`a` and `b` as one chain when every centre of `b` beside `a` lies on it; else None.
 
     The longer chain is the host and must hold an elongated cluster (blobs host nothing).
@@ -587,7 +611,7 @@ def _merge_overlap(a: np.ndarray, b: np.ndarray, clusters: Clusters, strong: np.
     if len(b) > 1 and np.median(agree[inside]) < 0:
         b, param, behind, ahead, inside = b[::-1], param[::-1], behind[::-1], ahead[::-1], inside[::-1]
     idx = np.flatnonzero(inside)
-    if np.any(behind[idx[-1]:]) or np.any(ahead[:idx[0] + 1]):
+    if np.any(behind[idx[-1] :]) or np.any(ahead[: idx[0] + 1]):
         return None
     key = np.where(behind, -1e12 + np.arange(len(b)), np.where(ahead, 1e12 + np.arange(len(b)), param))
     keys = np.concatenate([arc, key])
@@ -597,7 +621,11 @@ def _merge_overlap(a: np.ndarray, b: np.ndarray, clusters: Clusters, strong: np.
 def to_candidates(chains: list[np.ndarray], clusters: Clusters) -> list[Candidate]:
     """Candidate objects with ids in chain order."""
     return [
-        Candidate(id=i, centers=clusters.centers[c].copy(), directions=_chain_dirs(c, clusters),
-                  cluster_ids=c.copy())
+        Candidate(
+            id=i,
+            centers=clusters.centers[c].copy(),
+            directions=_chain_dirs(c, clusters),
+            cluster_ids=c.copy(),
+        )
         for i, c in enumerate(chains)
     ]
