@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 from synth_markings import SynthRoad, arc, clothoid, evaluate, make_road, model_lines, straight
 
 from lidar2xodr.config import LanesConfig, MarkingsConfig
@@ -341,3 +342,10 @@ def test_ramp_leaving_the_road_makes_no_lane() -> None:
     assert {len(sec.boundary_ids) - 1 for sec in model.sections} == {3}
     assert evaluate(model, road)["rmse"] < 0.05
     assert any("ignored" in w for w in model.warnings)
+
+
+def test_reference_height_follows_the_markings(curved: tuple[SynthRoad, LaneModel]) -> None:
+    road, model = curved
+    _, k = cKDTree(road.xy).query(model.reference[:, :2])
+    dz = model.reference[:, 2] - road.z[k]
+    assert np.sqrt(np.mean(dz[10:-10] ** 2)) < 0.03
