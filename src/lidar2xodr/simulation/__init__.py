@@ -85,7 +85,7 @@ def simulate(map_path: str | Path, out_dir: str | Path, opts: SimOptions | None 
     from lidar2xodr.simulation.gnss import pose_errors
     from lidar2xodr.simulation.lidar import Lidar
     from lidar2xodr.simulation.poses import ego_track, traffic_poses
-    from lidar2xodr.simulation.preview import PreviewCollector, render, render_tiles
+    from lidar2xodr.simulation.preview import PreviewCollector, Region, render, render_tiles, tile_regions
     from lidar2xodr.simulation.route import RoadGraph, build_route, longest_chain
     from lidar2xodr.simulation.scene import build_world
     from lidar2xodr.simulation.sensors import PRESETS
@@ -133,7 +133,12 @@ def simulate(map_path: str | Path, out_dir: str | Path, opts: SimOptions | None 
     with atomic_dir(out_dir) as tmp:
         (tmp / "scans").mkdir()
         (tmp / "truth").mkdir()
-        col = PreviewCollector(preset.mount_xyz[2], preset.intensity_scale, n_scans * preset.rays_per_scan)
+        close_k = _closeup_index(ego, traffic)
+        regions = [Region.at(ego, close_k, 1, f"close-up at t = {close_k / ego.hz:.1f} s: all points below sensor "
+                             "height, reflectivity")]
+        tiles = tile_regions(ego) if opts.preview else []
+        col = PreviewCollector(preset.mount_xyz[2], preset.intensity_scale, n_scans * preset.rays_per_scan,
+                               regions + tiles)
         bag = W.BagWriter(tmp, geo.ok) if opts.rosbag else None
         # Tiny matrix products on 100k rays: OpenBLAS threads only fight Embree's for the cores.
         with threadpool_limits(1, "blas"), _progress(console) as progress, \
@@ -174,10 +179,9 @@ def simulate(map_path: str | Path, out_dir: str | Path, opts: SimOptions | None 
         name = map_path.name
         title = (f"{name}: {length / 1000:.2f} km, {duration:.0f} s, {opts.sensor}, traffic {opts.traffic}, "
                  f"seed {opts.seed} (points below sensor height, reflectivity)")
-        close_k = _closeup_index(ego, traffic, agents)
-        render(tmp / "preview.png", col, ego, title, close_k)
-        if opts.preview:
-            render_tiles(tmp / "preview", col, ego)
+        render(tmp / "preview.png", col, ego, title)
+        if tiles:
+            render_tiles(tmp / "preview", tiles)
     passes = 1 + sum(leg.kind == "turn" for leg in route.legs if leg.u0 < length)
     if closed:
         passes = int(math.ceil(length / max(chain_len, 1e-9)))
@@ -251,7 +255,7 @@ def _rot_from_rpy(a: np.ndarray) -> np.ndarray:
     return Rotation.from_euler("ZYX", a[:, ::-1]).as_matrix()
 
 
-def _closeup_index(ego, traffic, agents) -> int:
+def _closeup_index(ego, traffic) -> int:
     """Pose index for the preview close-up: at speed, where most traffic is just ahead (occlusions)."""
     n = len(traffic.start) - 1
     best, best_k = 0, len(ego.pos) // 2
