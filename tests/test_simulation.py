@@ -144,6 +144,12 @@ def test_drive_directory_layout(drive: Drive) -> None:
     assert len(drive.scans) == int(duration / 0.1 + 1e-6)
     assert drive.truth[-1, 1] == pytest.approx(450.0, abs=1.0)  # straight road: x = distance driven
     assert not list(root.parent.glob(".drive.*")), "temporary directories left behind"
+    assert min(_pcd_points(p) for p in drive.scans) > 3000, "a scan (e.g. at the map's end) came out empty"
+
+
+def _pcd_points(path: Path) -> int:
+    head = path.read_bytes()[:400].split(b"DATA")[0].decode()
+    return int(next(line.split()[1] for line in head.splitlines() if line.startswith("POINTS")))
 
 
 def test_scans_read_back_with_three_readers(drive: Drive) -> None:
@@ -390,6 +396,7 @@ def test_laps_on_a_two_way_road_keep_poses_continuous(tmp_path: Path) -> None:
     s = simulate(xodr, tmp_path / "d", SimOptions(length_m=380.0, traffic="none", seed=1, rosbag=True))
     assert s.passes == 2
     poses = load_poses(tmp_path / "d" / "truth" / "poses.csv")
+    assert min(_pcd_points(p) for p in (tmp_path / "d" / "scans").glob("*.pcd")) > 1000  # U-turn included
     steps = np.linalg.norm(np.diff(poses[:, 1:3], axis=0), axis=1)
     assert steps.max() < 0.5  # 100 Hz: no jumps
     yaw = np.unwrap(poses[:, 6])
@@ -505,3 +512,10 @@ def test_simple_highway_from_the_shared_maps(shared_data: Path, tmp_path: Path) 
     z_road = road.elevation(np.array([w[:, 0].mean()]))[0]
     ground_bright = (np.abs(w[:, 2] - z_road) < 0.3) & (r > 0.45)
     assert ground_bright.sum() > 50
+
+
+def test_one_pass_stops_before_the_end_of_the_map(tmp_path: Path) -> None:
+    s = simulate(tiny_map(tmp_path / "m.xodr", 150.0), tmp_path / "d", SimOptions(traffic="none"))
+    assert s.passes == 1 and s.length_m == pytest.approx(140.0, abs=0.6)
+    last = sorted((tmp_path / "d" / "scans").glob("*.pcd"))[-1]
+    assert _pcd_points(last) > 3000
