@@ -28,7 +28,7 @@ T0 = 1_700_000_000.0
 """Absolute time of the drive start (s, Unix epoch, 2023-11-14T22:13:20Z): fixed so outputs repeat."""
 POSE_RATE_HZ = 100.0
 TRAFFIC_MARGIN_M = 1200.0
-END_MARGIN_M = 10.0
+END_MARGIN_M = 30.0
 """A one-pass drive on a route that ends in nothing stops this far before the end."""
 
 
@@ -108,7 +108,7 @@ def simulate(map_path: str | Path, out_dir: str | Path, opts: SimOptions | None 
         raise InputError(where, f"the route is only {length:.1f} m long: too short for a drive")
     one_pass = length <= chain_len + 0.5
     if one_pass and not closed and chain_len > 40.0:
-        # a front-mounted sensor sees nothing but the map's end in its last 10 m: stop before
+        # a front-mounted sensor sees little but the end of the map in its last metres: stop before
         length = min(length, chain_len - END_MARGIN_M)
     route = build_route(odr, nodes, closed, chain_len if one_pass else length + TRAFFIC_MARGIN_M, where)
     length = min(length, route.length - 0.5)
