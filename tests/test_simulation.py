@@ -426,6 +426,8 @@ def test_geo_reference_conventions() -> None:
     assert carla.ok and "CARLA" in (carla.note or "")
     lat, lon, alt = carla.latlon(np.array([[0.0, 1000.0, 5.0], [1000.0, 0.0, 5.0]]))
     assert lat[0] == pytest.approx(49.0 + 1000.0 / 111_200.0, abs=2e-4) and lon[1] > 8.01 and alt[0] == 5.0
+    grids = Geo("+proj=tmerc +lat_0=48 +lon_0=9 +ellps=GRS80 +geoidgrids=not_installed_here.gtx +units=m")
+    assert grids.ok and "grid" in (grids.note or "") and grids.origin()["lat"] == pytest.approx(48.0)
     bad = Geo("no projection at all")
     assert not bad.ok and "not understood" in (bad.note or "")
     assert Geo(None).origin()["lat"] is None

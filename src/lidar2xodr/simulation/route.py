@@ -404,8 +404,7 @@ def _make_turn(odr: OpenDriveMap, legs: list[Leg], lap: int, where: str, graph_l
     last = legs[-1]
     road = odr.roads[last.road]
     probe = np.array([last.s1 - last.direction * min(20.0, 0.5 * abs(last.s1 - last.s0))])
-    lanes = _lanes_at(road, probe, last.direction, last.c, True) + _lanes_at(road, probe, last.direction, last.c,
-                                                                            False)
+    lanes = _lanes_at(road, probe, last.direction, last.c)
     lams = sorted(lam for lam, _, _ in lanes)
     if not lams:
         raise InputError(where, f"road {road.id}: no lane to turn around in")
@@ -429,14 +428,13 @@ def _make_turn(odr: OpenDriveMap, legs: list[Leg], lap: int, where: str, graph_l
     return Leg("turn", last.u1, last.u1 + path.length, lap, road.id, last.direction, s_turn, 0.0, turn=path)
 
 
-def _lanes_at(road: Road, s: np.ndarray, d: int, c: float, same: bool, wrong: bool = False
-              ) -> list[tuple[float, float, int]]:
-    """(lambda, half width, lane id) of driving lanes at one station (helper for turns)."""
-    side = lane_side(road, d) * (-1 if wrong else 1) * (1 if same else -1)
+def _lanes_at(road: Road, s: np.ndarray, d: int, c: float) -> list[tuple[float, float, int]]:
+    """(lambda, half width, lane id) of the driving lanes on both sides at one station."""
     ls = road.lane_sections[int(road.section_index(s)[0])]
     out = []
     for lid, lane in ls.lanes.items():
-        if lid * side > 0 and lane.type in DRIVING:
+        if lid != 0 and lane.type in DRIVING:
+            side = 1 if lid > 0 else -1
             t_in = road.border_t(s, lid - side)[0]
             t_out = road.border_t(s, lid)[0]
             out.append((d * 0.5 * (t_in + t_out) + c, 0.5 * abs(t_out - t_in), lid))

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 from pathlib import Path
 from typing import Any
@@ -24,7 +25,7 @@ import numpy as np
 import yaml
 from pypcd4 import Encoding, PointCloud
 from pyproj import CRS, Transformer
-from pyproj.exceptions import CRSError
+from pyproj.exceptions import CRSError, ProjError
 
 from lidar2xodr.simulation.lidar import ScanOut
 
@@ -49,20 +50,24 @@ class Geo:
         if not geo_reference:
             self.note = "the map has no geoReference: lat/lon unknown, poses are in the map frame"
             return
-        try:
-            self._t = Transformer.from_crs(CRS.from_user_input(geo_reference), CRS.from_epsg(4326), always_xy=True)
-            return
-        except CRSError as exc:
-            problem = str(exc)
+        candidates = [(geo_reference, None)]
+        no_grids = re.sub(r"\+(geoidgrids|nadgrids)=\S+", "", geo_reference).strip()
+        if no_grids != geo_reference:
+            candidates.append((no_grids, "its datum grid files are not installed: read without them"))
         if "+proj=" not in geo_reference and "+lat_0" in geo_reference:
             # CARLA writes "+lat_0=.. +lon_0=.." without a projection: it means a transverse Mercator there
+            candidates.append((f"+proj=tmerc +ellps=WGS84 +k=1 +x_0=0 +y_0=0 {geo_reference} +no_defs",
+                               "geoReference has no +proj: read as +proj=tmerc (CARLA convention)"))
+        problem = ""
+        for text, note in candidates:
             try:
-                crs = CRS.from_user_input(f"+proj=tmerc +ellps=WGS84 +k=1 +x_0=0 +y_0=0 {geo_reference} +no_defs")
-                self._t = Transformer.from_crs(crs, CRS.from_epsg(4326), always_xy=True)
-                self.note = "geoReference has no +proj: read as +proj=tmerc (CARLA convention)"
+                self._t = Transformer.from_crs(CRS.from_user_input(text), CRS.from_epsg(4326), always_xy=True)
+                self._t.transform(0.0, 0.0, errcheck=True)
+                self.note = note
                 return
-            except CRSError:
-                pass
+            except (CRSError, ProjError) as exc:
+                self._t = None
+                problem = problem or str(exc)
         self.note = f"geoReference not understood by PROJ ({problem}); lat/lon left empty"
 
     @property
