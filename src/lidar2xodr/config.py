@@ -53,6 +53,25 @@ class ExtractionConfig(_Section):
     odometry_iterations: int = Field(2, description="ours: deskew-and-register rounds per scan")
     odometry_max_speed_mps: float = Field(70.0, description="ours: upper end of the start-speed search")
     odometry_bootstrap_s: float = Field(0.3, description="ours: time between the two scans of the start-speed search")
+    auto_method: Literal["local", "drive"] = Field(
+        "local", description="ours, with auto_threshold: 'local' = paint is a bright outlier of the road surface "
+        "around it (per point: range-, beam- and sensor-independent); 'drive' = one threshold per drive from the "
+        "first scans (Otsu / median + k MAD)")
+    local_neighbors: int = Field(16, description="ours: road-surface samples around a point that judge it")
+    local_cell_m: float = Field(0.25, description="ours: road-surface samples are taken one per cell of this "
+                                "size, so dense near-range returns on a wide line cannot be their own background")
+    local_contrast_k: float = Field(4.0, description="ours: paint is this many robust sigmas (MAD) brighter than "
+                                    "the median of its surroundings ...")
+    local_min_contrast: float = Field(0.08, description="ours: ... and at least this much brighter (0..1 scale)")
+    local_max_radius_m: float = Field(3.0, description="ours: a point whose surface samples reach farther than "
+                                      "this has too little road around it to be judged, and is dropped")
+    local_max_roughness_m: float = Field(0.015, description="ours: robust height spread (MAD) of the surroundings "
+                                         "above which they are not road surface (vegetation, gravel, kerbs)")
+    lateral_crop_m: float | None = Field(20.0, description="ours: points farther than this left or right of the "
+                                         "vehicle are dropped (embankments, other roads); None = no crop")
+    ground_prior_m: float = Field(0.5, description="ours: the ground plane passes within this height of the "
+                                  "vehicle origin (on the road by definition of the vehicle frame)")
+    workers: int = Field(1, ge=1, description="ours: processes filtering scans in parallel (same result)")
 
 
 class MarkingsConfig(_Section):
@@ -94,6 +113,8 @@ class LanesConfig(_Section):
     max_lane_width_m: float = Field(5.0, description="ours: wider spacings are not one lane")
     station_step_m: float = Field(1.0, description="ours: spacing of the reference-line stations")
     min_section_length_m: float = Field(30.0, description="ours: shorter lane-count changes are noise")
+    carriageway_gap_m: float = Field(10.0, description="ours: a wider space between two lines separates "
+                                     "carriageways (an unobserved line between two others leaves two lanes)")
     max_intersect_angle_deg: float = Field(30.0, description="ours: normals ignore segments crossing at a larger "
                                            "angle (ramps, crossing lines)")
     z_tolerance_m: float = Field(1.5, description="ours: normals ignore lines this much higher or lower (bridges)")

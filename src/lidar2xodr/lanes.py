@@ -28,8 +28,9 @@ Method and the decisions the paper leaves open (parameters in `LanesConfig`):
   marking points (a plane across the road per 5 m, evaluated at t = 0, smoothed along s).
 - Lane structure per station: parallel lines closer than `same_line_tolerance_m` are one (the
   one that goes on where the other ends is kept, else the better supported); carriageways split
-  at spacings above `max_lane_width_m` and at a space between two solid lines that both have
-  lines beyond them (a median); the one holding the ego trajectory is kept (else the one with
+  at spacings above `carriageway_gap_m` (steady ones above `max_lane_width_m` beside the
+  outermost line) and at a space between two solid lines with lines beyond both (a median);
+  the one holding the ego trajectory is kept (else the one with
   most lines, then most points) and lines of the other are ignored with a warning. Every
   adjacency of two lines must contain a stable lane stretch (width within [min, max], changing
   less than `stable_lane_slope`) of `min_section_length_m`, otherwise the outer line (or the
@@ -672,9 +673,11 @@ def _choose_carriageway(
 ) -> np.ndarray:
     """Split into carriageways and keep the one with the ego (else the most lines, then most points).
 
-    Splits: spacings above the widest lane, and a space between two solid lines that both have
-    lines beyond them (the median between two carriageways: each edge line has its own lanes on
-    its other side).
+    Splits: spacings above `carriageway_gap_m`; steady spacings above `max_lane_width_m` between
+    the outermost two lines (inside, or while a taper opens, such a space holds a lane whose
+    line was not seen); and a
+    space between two solid lines that both have lines beyond them (the median between two
+    carriageways: each edge line has its own lanes on its other side).
     """
     b_n, m = t.shape
     order, ts = _sorted_columns(t, on)
@@ -685,7 +688,15 @@ def _choose_carriageway(
         [present[2:], np.zeros((1, m), dtype=bool)]
     )
     median = both_solid & beyond & present[:-1] & present[1:]
-    split = np.vstack([np.zeros((1, m), dtype=bool), ~(gap <= cfg.max_lane_width_m) | median])
+    none = np.zeros((1, m), dtype=bool)
+    outer = ~np.vstack([none, present[:-2]]) | ~np.vstack([present[2:], none])
+    cols = np.arange(m)
+    ahead, back = np.minimum(cols + 5, m - 1), np.maximum(cols - 5, 0)
+    width_then = t[order[:-1], ahead] - t[order[1:], ahead]
+    width_before = t[order[:-1], back] - t[order[1:], back]
+    steady = np.abs(width_then - width_before) < cfg.stable_lane_slope * (ahead - back) * 1.0
+    wide_edge = outer & (gap > cfg.max_lane_width_m) & steady
+    split = np.vstack([none, ~(gap <= cfg.carriageway_gap_m) | median | wide_edge])
     group = np.cumsum(split, axis=0)
     n_groups = group.max() + 1
     score = np.zeros((n_groups, m))
@@ -797,7 +808,8 @@ def _hold_to(t: np.ndarray, on: np.ndarray, b: int, start: int, end: int) -> Non
 
     The neighbour is the nearest of those that reach furthest towards the end. Lines start late or
     end early near the ends of a drive because they were not yet (or no longer) observed, not
-    because the lane count changes.
+    because the lane count changes. A line that ends on another one (within 1 m: a lane that
+    closed) is not carried.
     """
     span = np.arange(end, start) if end < start else np.arange(start + 1, end + 1)
     others = [j for j in range(len(t)) if j != b and on[j, start]]
@@ -805,6 +817,8 @@ def _hold_to(t: np.ndarray, on: np.ndarray, b: int, start: int, end: int) -> Non
         return
     nb = max(others, key=lambda j: (round(float(on[j, span].mean()), 1), -abs(t[j, start] - t[b, start])))
     offset = t[b, start] - t[nb, start]
+    if min(abs(t[j, start] - t[b, start]) for j in others) < 1.0:
+        return
     span = span[on[nb, span] & ~on[b, span]]
     t[b, span] = t[nb, span] + offset
     on[b, span] = True
@@ -1074,7 +1088,7 @@ def build_lane_model(
         if not np.any(structure.on.sum(axis=0) >= 2):
             raise InputError(where, "no stretch of road has two marking lines a lane apart")
         curves = _labelling_curves(sub.t, fit.t[active], cfg.same_line_tolerance_m)
-        curves = _hold_ends(curves, int(round(30.0 / step)), cfg.same_line_tolerance_m)
+        curves = _hold_ends(curves, int(round(100.0 / step)), cfg.same_line_tolerance_m)
         nearest = _label_by_distance(k_pt, t_pt, inside, curves, cfg)
         label = np.where(nearest >= 0, active[np.maximum(nearest, 0)], -1)
         if it < 2:
