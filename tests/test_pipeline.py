@@ -1,0 +1,96 @@
+"""End to end: simulate a drive on the demo road, build the map, check it and compare with the truth.
+
+Accuracy targets live in `make bench`; this test guards the wiring and catches gross regressions
+(a lane too many, a map metres off, an invalid file) with generous bounds.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lidar2xodr.config import Config
+from lidar2xodr.demo_road import write_demo_road
+from lidar2xodr.errors import InputError
+from lidar2xodr.pipeline import BuildPipeline
+
+
+@pytest.fixture(scope="module")
+def demo_drive(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    from lidar2xodr.simulation import SimOptions, simulate
+
+    root = tmp_path_factory.mktemp("e2e")
+    truth = write_demo_road(root / "truth.xodr")
+    drive = root / "drive"
+    simulate(truth, drive, SimOptions(length_m=700.0, seed=3, traffic="mid"))
+    return truth, drive
+
+
+def test_build_check_compare(demo_drive: tuple[Path, Path], tmp_path: Path) -> None:
+    truth, drive = demo_drive
+    out = tmp_path / "map.xodr"
+    result = BuildPipeline(drive, out, report_dir=tmp_path / "report", reference=truth,
+                           scenario=tmp_path / "map.xosc").run()
+    assert out.exists() and result.check["ok"]
+    assert result.check["continuity"]["max_leap_m"] <= 1e-3
+    assert result.check["continuity"]["max_kink_rad"] <= 1e-3
+    metrics = result.summary["metrics"]
+    assert metrics["boundaries"]["eval_length_m"] > 500
+    assert metrics["boundaries"]["rmse_m"] < 0.3
+    assert metrics["centerline"]["rmse_m"] < 0.3
+    assert metrics["lane_count_agreement"] > 0.9
+    assert abs(metrics["lane_width"]["bias_m"]) < 0.15
+    html = (tmp_path / "report" / "index.html").read_text()
+    for png in ("1_markings.png", "2_lanes.png", "3_map.png"):
+        assert png in html and (tmp_path / "report" / png).stat().st_size > 10_000
+    assert (tmp_path / "map.xosc").exists()
+
+
+def test_same_drive_same_bytes(demo_drive: tuple[Path, Path], tmp_path: Path) -> None:
+    _, drive = demo_drive
+    a, b = tmp_path / "a.xodr", tmp_path / "b.xodr"
+    BuildPipeline(drive, a).run()
+    BuildPipeline(drive, b).run()
+    assert a.read_bytes() == b.read_bytes()
+
+
+def test_no_markings_is_a_clear_error_and_writes_nothing(demo_drive: tuple[Path, Path], tmp_path: Path) -> None:
+    """A threshold nothing passes leaves no markings: one clear error, no map, no temp files."""
+    _, drive = demo_drive
+    cfg = Config.model_validate({"extraction": {"auto_threshold": False, "reflectivity_threshold": 1.01}})
+    out = tmp_path / "out" / "map.xodr"
+    out.parent.mkdir()
+    with pytest.raises(InputError):
+        BuildPipeline(drive, out, cfg).run()
+    assert list(out.parent.iterdir()) == []
+
+
+def test_cli_build_bad_drive_one_line(tmp_path: Path) -> None:
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    proc = subprocess.run([sys.executable, "-m", "lidar2xodr.cli", "build", str(empty), "-o", str(tmp_path / "m.xodr")],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "empty" in lines[0] and "Traceback" not in proc.stderr
+    assert not (tmp_path / "m.xodr").exists()
+
+
+def test_cli_compare_json_keys(demo_drive: tuple[Path, Path], tmp_path: Path) -> None:
+    truth, _ = demo_drive
+    out = tmp_path / "m.json"
+    cmd = [sys.executable, "-m", "lidar2xodr.cli", "compare", str(truth), str(truth), "--json", str(out)]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    m = json.loads(out.read_text())
+    for group in ("boundaries", "centerline"):
+        for key in ("rmse_m", "mean_m", "std_m", "eval_length_m"):
+            assert np.isfinite(m[group][key])
+        assert m[group]["rmse_m"] == 0.0
+    assert m["lane_count_agreement"] == 1.0 and m["coverage"] == pytest.approx(1.0, abs=0.01)
+    assert m["lane_width"]["bias_m"] == 0.0
