@@ -135,9 +135,16 @@ class BuildPipeline:
             "scans": int(len(cloud.planes.times)),
             "export": summary.__dict__ if hasattr(summary, "__dict__") else str(summary),
         }
+        scenario_info = None
         if self.scenario:
             with self._stage("scenario"):
-                result.scenario_path = self._scenario(cloud)
+                scenario_info = self._scenario(cloud)
+            result.scenario_path = self.scenario
+            result.summary["scenario"] = {
+                "entities": len(scenario_info["summary"].entities),
+                "manoeuvres": [f"{m.kind} {m.actor} at {m.time_s:.1f} s" for m in scenario_info["summary"].manoeuvres],
+                "warnings": scenario_info["summary"].warnings,
+            }
         metrics = None
         if self.reference:
             from lidar2xodr.evaluation import compare_maps
@@ -151,17 +158,18 @@ class BuildPipeline:
             with self._stage("report"):
                 result.report_path = write_report(self.report_dir, cloud=cloud, model=model, map_path=self.out,
                                                   check=verdict, timings=self.timings, summary=result.summary,
-                                                  scenario=result.scenario_path, metrics=metrics)
+                                                  scenario=scenario_info, metrics=metrics)
         return result
 
-    def _scenario(self, cloud: MarkingCloud) -> Path:
+    def _scenario(self, cloud: MarkingCloud) -> dict[str, Any]:
+        """Write the OpenSCENARIO on the map just written; return its summary and the tracks for the report."""
         from lidar2xodr.export_scenario import export_scenario
         from lidar2xodr.tracks import load_tracks
 
         assert self.scenario is not None
         tracks = load_tracks(self.drive, cloud.trajectory)
-        export_scenario(cloud.trajectory, tracks, self.out, self.scenario, self.config)
-        return self.scenario
+        summary = export_scenario(cloud.trajectory, tracks, self.out, self.scenario, self.config)
+        return {"path": self.scenario, "summary": summary, "tracks": tracks, "ego": cloud.trajectory}
 
     def _keep(self, cloud: MarkingCloud, model: LaneModel) -> None:
         from lidar2xodr.lanes import save_lanes

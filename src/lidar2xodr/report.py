@@ -80,6 +80,66 @@ def plot_map(map_path: Path, path: Path, title: str, overlay: dict[str, np.ndarr
     plt.close(fig)
 
 
+def plot_participants(map_path: Path, scenario: dict[str, Any], path: Path) -> None:
+    """Every participant's path and the ego's on the generated lanes, straightened into road coordinates.
+
+    Station s along the reference line horizontally, lateral offset t vertically (stretched), so
+    lane changes, cut-ins and lanes that open or close are visible along a kilometres-long drive.
+    """
+    from scipy.spatial import cKDTree
+
+    from lidar2xodr.opendrive import OpenDriveMap
+
+    odr = OpenDriveMap.load(map_path)
+    sections = odr.sample(1.0)
+    ref = np.concatenate([sec.xyz[:, :2] for sec in sections])
+    s_all = np.concatenate([sec.s for sec in sections])  # a built map is one road
+    hdg = np.concatenate([sec.hdg for sec in sections])
+    tree = cKDTree(ref)
+
+    def to_st(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        dist, idx = tree.query(xy[:, :2])
+        d = xy[:, :2] - ref[idx]
+        t = -d[:, 0] * np.sin(hdg[idx]) + d[:, 1] * np.cos(hdg[idx])
+        s = s_all[idx] + d[:, 0] * np.cos(hdg[idx]) + d[:, 1] * np.sin(hdg[idx])
+        return np.where(dist < 30.0, s, np.nan), np.where(dist < 30.0, t, np.nan)
+
+    fig, ax = plt.subplots(figsize=(16, 6), dpi=110)
+    for sec in sections:
+        for lane_id, t in sec.border_t.items():
+            driving = sec.lane_types.get(lane_id, "") == "driving" or lane_id == 0
+            ax.plot(sec.s, t, "-", color="black" if driving else "0.7", lw=0.6)
+    cmap = plt.get_cmap("tab20")
+    for k, track in enumerate(scenario["tracks"].tracks):
+        s, t = to_st(track.xyz)
+        ax.plot(s, t, "-", lw=1.2, color=cmap(k % 20))
+        if np.isfinite(s).any():
+            i = int(np.nanargmin(s))
+            ax.annotate(f"{track.category} {track.id}", (s[i], t[i]), fontsize=7, color=cmap(k % 20))
+    s, t = to_st(scenario["ego"].positions)
+    ax.plot(s, t, "-", lw=2.0, color="tab:red", label="ego")
+    for m in scenario["summary"].manoeuvres:
+        xy = np.array([_position_at(scenario, m.actor, m.time_s)])
+        ms, mt = to_st(xy)
+        ax.plot(ms, mt, "v", color="tab:red")
+        ax.annotate(f"{m.kind} {m.actor}", (ms[0], mt[0]), fontsize=7, color="tab:red", rotation=30)
+    ax.set_xlabel("s along the reference line [m]")
+    ax.set_ylabel("t, left of the reference line [m]")
+    ax.legend(loc="upper right")
+    ax.grid(alpha=0.2)
+    ax.set_title(f"{len(scenario['tracks'].tracks)} participants and the ego on the generated lanes (road frame)")
+    fig.savefig(path, bbox_inches="tight")
+    plt.close(fig)
+
+
+def _position_at(scenario: dict[str, Any], actor: str, t: float) -> tuple[float, float]:
+    ego = scenario["ego"]
+    track = next((tr for tr in scenario["tracks"].tracks if str(tr.id) in actor), None)
+    times, xyz = (track.times, track.xyz) if track is not None else (ego.times, ego.positions)
+    t_abs = t + scenario["summary"].time_offset_s
+    return float(np.interp(t_abs, times, xyz[:, 0])), float(np.interp(t_abs, times, xyz[:, 1]))
+
+
 def _table(rows: dict[str, Any]) -> str:
     body = "".join(
         f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(_fmt(v))}</td></tr>" for k, v in rows.items()
@@ -114,7 +174,7 @@ def write_report(
     check: dict[str, Any],
     timings: dict[str, float],
     summary: dict[str, Any],
-    scenario: Path | None = None,
+    scenario: dict[str, Any] | None = None,
     metrics: dict[str, Any] | None = None,
 ) -> Path:
     """Write `out_dir/index.html` with its pictures, atomically (the folder appears whole)."""
@@ -133,6 +193,9 @@ def write_report(
         overlay = {"trajectory": cloud.trajectory.positions} if len(cloud.trajectory) else None
         plot_map(map_path, tmp / "3_map.png", f"Stage 4: the written map ({map_path.name})", overlay)
         figures.append(("3_map.png", "Stage 4: the map drawn back from the written OpenDRIVE file"))
+        if scenario:
+            plot_participants(map_path, scenario, tmp / "4_scenario.png")
+            figures.append(("4_scenario.png", "Scenario: the ego and every participant on the generated lanes"))
         parts = [
             "<!doctype html><html><head><meta charset='utf-8'><title>lidar2xodr report</title>",
             "<style>body{font-family:sans-serif;max-width:1400px;margin:auto}img{max-width:100%}"
@@ -152,7 +215,15 @@ def write_report(
             items = "".join(f"<li>{html.escape(w)}</li>" for w in model.warnings)
             parts += [f"<h2>Warnings</h2><ul>{items}</ul>"]
         if scenario:
-            parts += [f"<p>Scenario: {html.escape(str(scenario))}</p>"]
+            summ = scenario["summary"]
+            items = "".join(
+                f"<li>{html.escape(f'{m.kind}: {m.actor} at {m.time_s:.1f} s')}</li>" for m in summ.manoeuvres
+            ) or "<li>none detected</li>"
+            parts += [
+                f"<h2>Scenario {html.escape(str(scenario['path']))}</h2>",
+                f"<p>{len(summ.entities)} entities, {summ.duration_s:.1f} s.</p>",
+                f"<h3>Manoeuvres relative to the generated lanes</h3><ul>{items}</ul>",
+            ]
         for name, caption in figures:
             parts += [f"<h2>{html.escape(caption)}</h2><img src='{name}' alt='{html.escape(caption)}'>"]
         parts.append("</body></html>")
