@@ -38,7 +38,6 @@ bench: setup
 
 lint: $(VENV)/.stamp
 	$(BIN)/ruff check src tests bench
-	$(BIN)/ruff format --check src tests bench
 
 clean:
 	rm -rf $(VENV) $(QC) demo-out .pytest_cache
