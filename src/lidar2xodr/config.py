@@ -39,7 +39,7 @@ class ExtractionConfig(_Section):
     ransac_range_m: float = Field(40.0, description="ours: the plane is fitted to ground within this radius "
                                   "(local plane; far points are sparse and bend with the road)")
     ransac_max_tilt_deg: float = Field(15.0, description="ours: plane normals tilted more from vehicle z are rejected")
-    ransac_sample_points: int = Field(4000, description="ours: points that score the RANSAC hypotheses")
+    ransac_sample_points: int = Field(1000, description="ours: points that score the RANSAC hypotheses")
     auto_threshold_scans: int = Field(10, description="ours: scans whose ground intensities set the auto threshold")
     auto_threshold_range_m: float = Field(40.0, description="ours: ground points within this radius feed it")
     auto_threshold_mad_k: float = Field(3.0, description="ours: the auto threshold is at least median + k robust "
@@ -60,7 +60,7 @@ class ExtractionConfig(_Section):
     local_neighbors: int = Field(16, description="ours: road-surface samples around a point that judge it")
     local_cell_m: float = Field(0.25, description="ours: road-surface samples are taken one per cell of this "
                                 "size, so dense near-range returns on a wide line cannot be their own background")
-    local_contrast_k: float = Field(4.0, description="ours: paint is this many robust sigmas (MAD) brighter than "
+    local_contrast_k: float = Field(5.0, description="ours: paint is this many robust sigmas (MAD) brighter than "
                                     "the median of its surroundings ...")
     local_min_contrast: float = Field(0.08, description="ours: ... and at least this much brighter (0..1 scale)")
     local_max_radius_m: float = Field(3.0, description="ours: a point whose surface samples reach farther than "
@@ -131,6 +131,8 @@ class LanesConfig(_Section):
     max_taper_length_m: float = Field(300.0, description="ours: longest lane taper followed back to zero width")
     solid_min_run_m: float = Field(20.0, description="ours: painted runs longer than this (length-weighted median) "
                                    "make a solid line")
+    divider_min_length_m: float = Field(300.0, description="ours: a solid line with lanes on both sides that the "
+                                        "ego never crosses separates the two directions when it is that long")
 
 
 class ExportConfig(_Section):

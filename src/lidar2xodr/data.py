@@ -117,11 +117,17 @@ class Boundary:
 
 @dataclass
 class LaneSection:
-    """A stretch with a constant set of boundaries (ordered left to right)."""
+    """A stretch with a constant set of boundaries (ordered left to right).
+
+    `divider_id` is the boundary that separates the two directions of a road whose carriageways
+    are only separated by paint (None: one direction only, e.g. a motorway carriageway beside a
+    physical median). Boundaries left of it bound the lanes of the opposite direction.
+    """
 
     s_start: float
     s_end: float
     boundary_ids: list[int]
+    divider_id: int | None = None
 
 
 @dataclass

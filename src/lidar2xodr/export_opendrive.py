@@ -26,7 +26,11 @@ Beyond the paper:
   on an R = 800 m S-curve with 150 m clothoids that costs up to 2 cm.
 - Lanes of a one-way carriageway in right-hand traffic: the reference line stays on the road
   centre (paper) and a <laneOffset> moves lane 0 onto the leftmost boundary, so every driving
-  lane is a right lane (-1, -2, ... from left to right). laneOffset and lane widths are C1 cubic
+  lane is a right lane (-1, -2, ... from left to right). A two-way road whose directions are only
+  separated by paint (LaneSection.divider_id) gets lane 0 on that divider instead: the lanes right
+  of it are right lanes (along s), the lanes left of it left lanes (1, 2, ... outwards; under
+  rule="RHT" they travel against s), each side with its own widths, road marks and links (never
+  across lane 0). laneOffset and lane widths are C1 cubic
   splines (least squares, tiny P-spline penalty) written as one cubic record every
   ~`lane_record_m`; C1 rather than C2 so tapers (whose width has a curvature kink) are followed
   to millimetres. Before fitting, every boundary's world points (reference + t * left normal of
@@ -38,7 +42,7 @@ Beyond the paper:
   when their lateral extents overlap at the section change. A lane without predecessor starts at
   width 0 and one without successor ends at width 0; where its markings start at full width it
   opens along a smoothstep over `taper_length_m`. Linked lanes continue with the same width.
-- Road marks: every lane's outer border and the centre lane (leftmost boundary) carry the
+- Road marks: every lane's outer border and the centre lane (leftmost boundary or divider) carry the
   boundary's solid/broken mark with its width, laneChange none/both, and for broken lines with a
   known dash/gap an explicit <type><line length space/>.
 - Elevation: C2 cubic spline of the reference z with one record per planView piece (paper: cubic
@@ -340,6 +344,20 @@ class _SectionFit:
     widths: list[_Records]
     pred: dict[int, int]  # lane index -> predecessor lane index in the previous section
     succ: dict[int, int]
+    centre: int = 0  # position in `ids` of the boundary lane 0 lies on
+
+    def lane_id(self, i: int) -> int:
+        """OpenDRIVE id of lane i (between ids[i] and ids[i + 1]): right of lane 0 negative, left positive."""
+        return -(i - self.centre + 1) if i >= self.centre else self.centre - i
+
+    def borders(self, offset: np.ndarray, s: np.ndarray) -> list[np.ndarray]:
+        """t of every boundary in `ids` as written: lane 0 at `offset`, widths outwards on both sides."""
+        out: list[np.ndarray] = [offset] * len(self.ids)
+        for i in range(self.centre, len(self.widths)):
+            out[i + 1] = out[i] - self.widths[i](s)
+        for i in range(self.centre - 1, -1, -1):
+            out[i] = out[i + 1] + self.widths[i](s)
+        return out
 
 
 def _smoothstep(x: np.ndarray) -> np.ndarray:
@@ -376,12 +394,17 @@ def _link(prev_iv: np.ndarray, next_iv: np.ndarray) -> dict[int, int]:
     return links
 
 
-def _lane_fit(grid_s: np.ndarray, t_data: dict[int, np.ndarray], sections: list[tuple[float, float, list[int]]],
+def _lane_fit(grid_s: np.ndarray, t_data: dict[int, np.ndarray],
+              sections: list[tuple[float, float, list[int], int]],
               cfg: ExportConfig) -> tuple[_Records, list[_SectionFit]]:
-    """laneOffset and per-section widths from the boundaries' t on the common station grid."""
-    masks = [(grid_s >= s0 - 1e-9) & (grid_s <= s1 + 1e-9) for s0, s1, _ in sections]
+    """laneOffset and per-section widths from the boundaries' t on the common station grid.
+
+    Each section names the position of its centre boundary (lane 0) in its boundary list. Lanes are
+    linked only to lanes on the same side of lane 0 (the two directions never continue each other).
+    """
+    masks = [(grid_s >= s0 - 1e-9) & (grid_s <= s1 + 1e-9) for s0, s1, _, _ in sections]
     targets: list[np.ndarray] = []  # per section: (n_boundaries, n_samples)
-    for j, ((s0, s1, ids), m) in enumerate(zip(sections, masks, strict=True)):
+    for j, ((s0, s1, ids, _), m) in enumerate(zip(sections, masks, strict=True)):
         rows = []
         for bid in ids:
             t = t_data[bid][m]
@@ -404,17 +427,19 @@ def _lane_fit(grid_s: np.ndarray, t_data: dict[int, np.ndarray], sections: list[
     preds = [{} for _ in sections]
     succs = [{} for _ in sections]
     for j in range(1, len(sections)):
-        preds[j] = _link(edges(j - 1, True), edges(j, False))
+        c0, c1 = sections[j - 1][3], sections[j][3]
+        links = _link(edges(j - 1, True), edges(j, False))
+        preds[j] = {jj: i for jj, i in links.items() if (jj >= c1) == (i >= c0)}
         succs[j - 1] = {i: jj for jj, i in preds[j].items()}
 
     offset_s: list[np.ndarray] = []
     offset_t: list[np.ndarray] = []
     fits: list[_SectionFit] = []
-    for j, ((s0, s1, ids), m) in enumerate(zip(sections, masks, strict=True)):
+    for j, ((s0, s1, ids, c), m) in enumerate(zip(sections, masks, strict=True)):
         s = grid_s[m]
         arr = targets[j]
         taper = min(cfg.taper_length_m, 0.5 * (s1 - s0))
-        lead = arr[0].copy()
+        lead = arr[c].copy()
         breaks = _uniform_breaks(s0, s1, cfg.lane_record_m)
         widths = []
         for i in range(len(ids) - 1):
@@ -428,13 +453,16 @@ def _lane_fit(grid_s: np.ndarray, t_data: dict[int, np.ndarray], sections: list[
             if j < len(sections) - 1 and i not in succs[j]:
                 w = _taper(w, s1 - s, taper)
                 cons.append((s1, 0.0))
-            if i == 0 and (j > 0 and i not in preds[j] or j < len(sections) - 1 and i not in succs[j]):
-                lead = arr[1] + w
+            tapered = j > 0 and i not in preds[j] or j < len(sections) - 1 and i not in succs[j]
+            if tapered and i == c:
+                lead = arr[c + 1] + w
+            elif tapered and i == c - 1:
+                lead = arr[c - 1] - w
             widths.append(_spline_records(s, w, breaks, constraints=tuple(cons), c1=True))
-        fits.append(_SectionFit(s0, s1, ids, widths, preds[j], succs[j]))
+        fits.append(_SectionFit(s0, s1, ids, widths, preds[j], succs[j], c))
         offset_s.append(s)
         offset_t.append(lead)
-    all_breaks = np.unique(np.concatenate([_uniform_breaks(a, b, cfg.lane_record_m) for a, b, _ in sections]))
+    all_breaks = np.unique(np.concatenate([_uniform_breaks(a, b, cfg.lane_record_m) for a, b, _, _ in sections]))
     offset = _spline_records(np.concatenate(offset_s), np.concatenate(offset_t), all_breaks, c1=True)
     return offset, fits
 
@@ -471,6 +499,9 @@ def _check_model(model: LaneModel, cfg: ExportConfig) -> None:
         missing = [i for i in sec.boundary_ids if i not in known]
         if missing:
             raise InputError(_WHERE, f"lane section {j} names unknown boundaries {missing}")
+        if sec.divider_id is not None and sec.divider_id not in sec.boundary_ids[1:-1]:
+            raise InputError(_WHERE, f"lane section {j}: divider {sec.divider_id} is not one of its inner "
+                                     f"boundaries {sec.boundary_ids}")
         if sec.s_end <= sec.s_start:
             raise InputError(_WHERE, f"lane section {j} is empty (s {sec.s_start} to {sec.s_end})")
         if j and abs(sec.s_start - model.sections[j - 1].s_end) > 0.5:
@@ -562,29 +593,34 @@ def _build_lanes(offset: _Records, fits: list[_SectionFit], bounds: dict[int, Bo
     built: list[xodr.LaneSection] = []
     for j, fit in enumerate(fits):
         centre = xodr.Lane()
-        centre.add_roadmark(_mark(bounds[fit.ids[0]]))
+        centre.add_roadmark(_mark(bounds[fit.ids[fit.centre]]))
         sec = xodr.LaneSection(float(fit.s0), centre)
+        order = list(range(fit.centre - 1, -1, -1)) + list(range(fit.centre, len(fit.widths)))
+        for i in order:
+            lane = _lane(xodr.LaneType.driving, fit.widths[i], fit.s0)
+            if i in fit.pred:
+                lane.add_link("predecessor", fits[j - 1].lane_id(fit.pred[i]))
+            if i in fit.succ:
+                lane.add_link("successor", fits[j + 1].lane_id(fit.succ[i]))
+            if i < fit.centre:
+                lane.add_roadmark(_mark(bounds[fit.ids[i]]))
+                sec.add_left_lane(lane)
+            else:
+                lane.add_roadmark(_mark(bounds[fit.ids[i + 1]]))
+                sec.add_right_lane(lane)
         if cfg.left_border_m > 0:
             border = _lane(xodr.LaneType.border, _constant(cfg.left_border_m, fit.s0), fit.s0)
             if j > 0:
-                border.add_link("predecessor", 1)
+                border.add_link("predecessor", fits[j - 1].centre + 1)
             if j < len(fits) - 1:
-                border.add_link("successor", 1)
+                border.add_link("successor", fits[j + 1].centre + 1)
             sec.add_left_lane(border)
-        for i, rec in enumerate(fit.widths):
-            lane = _lane(xodr.LaneType.driving, rec, fit.s0)
-            if i in fit.pred:
-                lane.add_link("predecessor", -(fit.pred[i] + 1))
-            if i in fit.succ:
-                lane.add_link("successor", -(fit.succ[i] + 1))
-            lane.add_roadmark(_mark(bounds[fit.ids[i + 1]]))
-            sec.add_right_lane(lane)
         if cfg.right_shoulder_m > 0:
             shoulder = _lane(xodr.LaneType.shoulder, _constant(cfg.right_shoulder_m, fit.s0), fit.s0)
             if j > 0:
-                shoulder.add_link("predecessor", -len(fits[j - 1].widths) - 1)
+                shoulder.add_link("predecessor", -(len(fits[j - 1].widths) - fits[j - 1].centre) - 1)
             if j < len(fits) - 1:
-                shoulder.add_link("successor", -len(fits[j + 1].widths) - 1)
+                shoulder.add_link("successor", -(len(fits[j + 1].widths) - fits[j + 1].centre) - 1)
             sec.add_right_lane(shoulder)
         built.append(sec)
     for sec in built:
@@ -693,7 +729,8 @@ def export_opendrive(model: LaneModel, planes: GroundPlanes | None, cfg: ExportC
     sec_s = np.interp([sec.s_start for sec in model.sections], grid, grid_odr)
     sec_s[0] = 0.0
     sec_e = np.r_[sec_s[1:], total]
-    sections = [(float(a), float(b), list(sec.boundary_ids))
+    sections = [(float(a), float(b), list(sec.boundary_ids),
+                 0 if sec.divider_id is None else list(sec.boundary_ids).index(sec.divider_id))
                 for a, b, sec in zip(sec_s, sec_e, model.sections, strict=True)]
     offset, fits = _lane_fit(grid_odr, t_odr, sections, cfg)
 
@@ -718,10 +755,7 @@ def export_opendrive(model: LaneModel, planes: GroundPlanes | None, cfg: ExportC
     outer: list[np.ndarray] = [ref[:, :2]]
     for fit in fits:
         m = (grid_odr >= fit.s0) & (grid_odr <= fit.s1)
-        border = offset(grid_odr[m])
-        for i, bid in enumerate(fit.ids):
-            if i:
-                border = border - fit.widths[i - 1](grid_odr[m])
+        for bid, border in zip(fit.ids, fit.borders(offset(grid_odr[m]), grid_odr[m]), strict=True):
             ok = np.isfinite(t_odr[bid][m])
             if ok.any():
                 border_dev = max(border_dev, float(np.max(np.abs(border[ok] - t_odr[bid][m][ok]))))

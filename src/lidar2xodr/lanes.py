@@ -1101,6 +1101,7 @@ def build_lane_model(
         )
     pts = _Points(k_pt, t_pt, s_pt, inside, label, xyz[:, 2])
     model = _assemble(cloud, pieces, superline, frame, fit, structure, pts, warnings, cfg)
+    _mark_dividers(model, _ego_track(frame, ego, model), cfg)
     longest: dict[int, tuple[int, int]] = {}
     for piece, i in zip(pieces, owner, strict=True):
         if i not in longest or len(piece.centers) > longest[i][0]:
@@ -1186,6 +1187,72 @@ def _ego_offsets(frame: Frame, ego: np.ndarray | None) -> np.ndarray | None:
         return None
     order = np.argsort(s[inside])
     return np.interp(frame.s, s[inside][order], t[inside][order], left=np.nan, right=np.nan)
+
+
+@dataclass
+class _EgoTrack:
+    """Trajectory samples on the model's stations: index, offset, and +1/-1 travelling along/against s."""
+
+    k: np.ndarray
+    t: np.ndarray
+    direction: np.ndarray
+
+
+def _ego_track(frame: Frame, ego: np.ndarray | None, model: LaneModel) -> _EgoTrack | None:
+    """The trajectory on the model's stations (the model starts at a station of `frame`)."""
+    if ego is None or len(ego) < 3:
+        return None
+    s_e, t_e, inside = frame.project(ego)
+    ds = np.gradient(s_e)
+    moving = np.abs(ds) > 1e-3
+    step = float(frame.s[1] - frame.s[0])
+    first = int(np.argmin(np.linalg.norm(frame.xy - model.reference[0, :2], axis=1)))
+    k = np.rint(s_e / step).astype(np.int64) - first
+    keep = inside & moving
+    return _EgoTrack(k[keep], t_e[keep], np.sign(ds[keep]).astype(np.int64))
+
+
+def _mark_dividers(model: LaneModel, ego: _EgoTrack | None, cfg: LanesConfig) -> None:
+    """Set `LaneSection.divider_id` where a painted line separates the two directions.
+
+    Evidence (right-hand traffic), none of it from the trajectory's shape connecting markings:
+    the line is solid, has lanes on both sides over sections of at least `divider_min_length_m`
+    together, and every trajectory sample beside it lies on the side of its own travel direction
+    (right of it while moving along s, left while moving against s), over at least
+    `divider_min_length_m` of stations: the ego never crossed it. A solid line inside one
+    carriageway (an exit lane's, a lane drop's) is short, or crossed, or has the ego on its wrong
+    side, so it is no divider. Without a trajectory no divider is set (the side cannot be known);
+    where several lines qualify, the one nearest the ego bounds its carriageway. Sections where the
+    line is the outermost one (the opposite lanes not seen) keep no divider.
+    """
+    if ego is None or not model.sections or len(ego.k) == 0:
+        return
+    by_id = {b.id: b for b in model.boundaries}
+    step = float(model.s[1] - model.s[0]) if len(model.s) > 1 else 1.0
+    inner: dict[int, list[int]] = {}
+    for j, sec in enumerate(model.sections):
+        for bid in sec.boundary_ids[1:-1]:
+            if by_id[bid].mark_type == "solid":
+                inner.setdefault(bid, []).append(j)
+    ok = (ego.k >= 0) & (ego.k < len(model.s))
+    k, t_e, direction = ego.k[ok], ego.t[ok], ego.direction[ok]
+    closeness: dict[int, float] = {}
+    for bid, secs in inner.items():
+        length = sum(model.sections[j].s_end - model.sections[j].s_start for j in secs)
+        if length < cfg.divider_min_length_m:
+            continue
+        t_b = by_id[bid].t[k]
+        beside = np.isfinite(t_b)
+        if not beside.any():
+            continue
+        right_side = t_e[beside] < t_b[beside]
+        consistent = np.where(direction[beside] > 0, right_side, ~right_side)
+        covered = len(np.unique(k[beside])) * step
+        if consistent.all() and covered >= cfg.divider_min_length_m:
+            closeness[bid] = float(np.median(np.abs(t_e[beside] - t_b[beside])))
+    for j, sec in enumerate(model.sections):
+        found = [bid for bid in closeness if j in inner[bid]]
+        sec.divider_id = min(found, key=lambda b: (closeness[b], b)) if found else None
 
 
 def _label_by_candidates(
@@ -1420,7 +1487,10 @@ def _num(a: np.ndarray) -> list:
 
 
 def save_lanes(model: LaneModel, path: str | Path) -> None:
-    """Write the lane model as JSON (format `lidar2xodr.lanes/1`, NaN written as null), atomically."""
+    """Write the lane model as JSON (format `lidar2xodr.lanes/1`, NaN written as null), atomically.
+
+    Each section carries `divider_id` (null: one direction); files written before it existed load
+    with no divider."""
     data = {
         "format": FORMAT,
         "s": _num(model.s),
@@ -1437,7 +1507,12 @@ def save_lanes(model: LaneModel, path: str | Path) -> None:
             for b in model.boundaries
         ],
         "sections": [
-            {"s_start": sec.s_start, "s_end": sec.s_end, "boundary_ids": list(sec.boundary_ids)}
+            {
+                "s_start": sec.s_start,
+                "s_end": sec.s_end,
+                "boundary_ids": list(sec.boundary_ids),
+                "divider_id": sec.divider_id,
+            }
             for sec in model.sections
         ],
         "candidates": [
@@ -1523,8 +1598,18 @@ def load_lanes(path: str | Path) -> LaneModel:
             bad = [i for i in sec["boundary_ids"] if i not in ids]
             if bad:
                 raise InputError(f"{path} section {j}", f"names unknown boundaries {bad}")
+            divider = sec.get("divider_id")
+            if divider is not None and divider not in sec["boundary_ids"][1:-1]:
+                raise InputError(
+                    f"{path} section {j}", f"divider_id {divider} is not an inner boundary of the section"
+                )
             sections.append(
-                LaneSection(float(sec["s_start"]), float(sec["s_end"]), [int(i) for i in sec["boundary_ids"]])
+                LaneSection(
+                    float(sec["s_start"]),
+                    float(sec["s_end"]),
+                    [int(i) for i in sec["boundary_ids"]],
+                    None if divider is None else int(divider),
+                )
             )
         candidates = []
         for c in data["candidates"]:
