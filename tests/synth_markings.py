@@ -142,6 +142,7 @@ def make_road(
     exit_lane: tuple[float, float, float] | None = None,
     guard_rail: float | None = None,
     opposite: float | None = None,
+    two_way: tuple[float, ...] | None = None,
     ramp: tuple[float, float] | None = None,
     ego_lane: int = 1,
     lane_change_at: float | None = None,
@@ -152,6 +153,8 @@ def make_road(
     """Draw a marking cloud; `exit_lane` = (s_a, s_b, taper) adds a lane on the right.
 
     `opposite` draws the other carriageway beyond a median of that width (sparse, half occluded);
+    `two_way` = lane widths of the other direction, painted left of the left edge line (which then
+    only divides the directions: a paint-only two-way road; sparse, a few occlusions);
     `lane_change_at` moves the ego one lane to the right over 100 m from that station; `ramp` =
     (s0, angle in degrees) draws the two solid edges of a ramp that leaves the right edge at s0.
     """
@@ -201,6 +204,16 @@ def make_road(
             )
             for a in rng.uniform(0.0, length, int(length / 60)):
                 line.gaps.append((float(a), float(a) + 30.0))
+            others.append(line)
+    if two_way is not None:
+        base = float(edges[0])
+        for i, w in enumerate(two_way):
+            base += w
+            last = i == len(two_way) - 1
+            line = Line(f"two{i}", base, "solid" if last else "broken", 0.30 if last else 0.15, 0.0, length,
+                        phase=float(rng.uniform(0.0, 18.0)))
+            for a in rng.uniform(0.0, length, int(length / 200)):
+                line.gaps.append((float(a), float(a) + 20.0))
             others.append(line)
     if ramp is not None:
         s0, angle = ramp

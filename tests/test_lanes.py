@@ -2,16 +2,26 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
-from synth_markings import SynthRoad, arc, clothoid, evaluate, make_road, model_lines, straight
+from synth_markings import (
+    SynthRoad,
+    arc,
+    clothoid,
+    evaluate,
+    make_road,
+    model_lines,
+    polyline_distance,
+    straight,
+)
 
 from lidar2xodr.config import LanesConfig, MarkingsConfig
-from lidar2xodr.data import Candidate, LaneModel
+from lidar2xodr.data import Candidate, LaneModel, Trajectory
 from lidar2xodr.errors import InputError
 from lidar2xodr.lanes import (
     build_lane_model,
@@ -331,6 +341,7 @@ def test_other_carriageway_beyond_the_median_is_ignored() -> None:
     )
     model = _build(road)
     assert {len(sec.boundary_ids) - 1 for sec in model.sections} == {3}
+    assert all(sec.divider_id is None for sec in model.sections), "a physical median: one direction kept"
     res = evaluate(model, road)
     assert res["rmse"] < 0.05 and res["lane_count_ok"] > 0.99
     assert sum("ignored" in w for w in model.warnings) >= 3
@@ -349,3 +360,67 @@ def test_reference_height_follows_the_markings(curved: tuple[SynthRoad, LaneMode
     _, k = cKDTree(road.xy).query(model.reference[:, :2])
     dz = model.reference[:, 2] - road.z[k]
     assert np.sqrt(np.mean(dz[10:-10] ** 2)) < 0.03
+
+
+def _two_way(lane_change_at: float | None = None, ego_lane: int = 1, seed: int = 31) -> SynthRoad:
+    """A paint-only two-way road: 3 lanes along the drive, 2 against it, one solid line between."""
+    return make_road(
+        [straight(300.0), arc(500.0, 2500.0)],
+        two_way=(3.5, 3.5),
+        gnss_noise=0.05,
+        ego_lane=ego_lane,
+        lane_change_at=lane_change_at,
+        seed=seed,
+    )
+
+
+def test_paint_only_two_way_road_has_a_divider() -> None:
+    road = _two_way()
+    model = _build(road)
+    divider_t = road.lines[0].offset
+    lines = model_lines(model)
+    for sec in model.sections:
+        assert sec.divider_id is not None
+        d = sec.boundary_ids.index(sec.divider_id)
+        assert (d, len(sec.boundary_ids) - 1 - d) == (2, 3), "2 lanes against the drive, 3 along it"
+    div = {sec.divider_id for sec in model.sections}
+    assert len(div) == 1
+    pts = road.line_xy(road.lines[0], np.arange(20.0, road.s[-1] - 20.0, 1.0))
+    d = np.min([polyline_distance(pts, p) for p in lines[div.pop()]], axis=0)
+    assert np.sqrt(np.mean(d**2)) < 0.05, "the divider is the solid line the ego drove beside"
+    far = road.line_xy(dataclasses.replace(road.lines[0], offset=divider_t + 7.0), np.arange(20.0, 780.0, 1.0))
+    d_far = np.min([np.min([polyline_distance(far, p) for p in parts], axis=0) for parts in lines.values()], axis=0)
+    assert np.mean(d_far < 0.2) > 0.95, "the opposite edge line is a boundary"
+    res = evaluate(model, road)
+    assert res["rmse"] < 0.05
+
+
+def test_solid_line_the_ego_crosses_or_drives_left_of_is_no_divider() -> None:
+    road = _two_way(lane_change_at=300.0, ego_lane=0, seed=32)
+    poses = road.cloud.trajectory.poses
+    poses[:, :2, 3] += 3.75 * poses[:, :2, 1]  # from the left of the solid line across it to the right
+    crossed = _build(road)
+    assert {len(sec.boundary_ids) for sec in crossed.sections} == {6}
+    assert all(sec.divider_id is None for sec in crossed.sections), "the ego crossed it"
+    road = _two_way(seed=33)
+    road.cloud.trajectory = Trajectory(road.cloud.trajectory.times[::-1].copy(), road.cloud.trajectory.poses[::-1])
+    against = _build(road)
+    assert all(sec.divider_id is None for sec in against.sections), "ego right of a line, driving against s"
+    road.cloud.trajectory = Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
+    assert all(sec.divider_id is None for sec in _build(road).sections), "no trajectory: no side known"
+
+
+def test_divider_survives_lanes_json_and_old_files_load(tmp_path: Path) -> None:
+    model = _build(_two_way())
+    save_lanes(model, tmp_path / "l.json")
+    back = load_lanes(tmp_path / "l.json")
+    assert [sec.divider_id for sec in back.sections] == [sec.divider_id for sec in model.sections]
+    data = json.loads((tmp_path / "l.json").read_text())
+    for sec in data["sections"]:
+        del sec["divider_id"]
+    (tmp_path / "old.json").write_text(json.dumps(data))
+    assert all(sec.divider_id is None for sec in load_lanes(tmp_path / "old.json").sections)
+    data["sections"][0]["divider_id"] = data["sections"][0]["boundary_ids"][0]
+    (tmp_path / "bad.json").write_text(json.dumps(data))
+    with pytest.raises(InputError, match="divider_id"):
+        load_lanes(tmp_path / "bad.json")
