@@ -70,6 +70,17 @@ def _planes(model: LaneModel, seed: int = 0) -> GroundPlanes:
     return GroundPlanes(times=1.7e9 + model.s[idx] / 25.0, normals_world=normals, points_world=points)
 
 
+def _two_way_road() -> LaneModel:
+    """2 lanes against s, a solid divider, 3 lanes along s (+ an added lane on the right mid-way)."""
+    model = _make_road(1600.0, [(0, 0), (300, 0), (600, -1 / 1500), (1600, -1 / 1500)], lanes=5,
+                       extra=(500.0, 1100.0, 120.0))
+    model.boundaries[2].mark_type, model.boundaries[2].mark_width = "solid", 0.3
+    model.boundaries[2].dash_length = model.boundaries[2].gap_length = None
+    for sec in model.sections:
+        sec.divider_id = 2
+    return model
+
+
 ROADS = {
     "straight": lambda: _make_road(800.0, [(0, 0), (800, 0)]),
     "r2000": lambda: _make_road(1200.0, [(0, 1 / 2000), (1200, 1 / 2000)],
@@ -82,6 +93,7 @@ ROADS = {
                                                (5000, 0)],
                                       z=lambda s: 15.0 * np.sin(2 * np.pi * s / 4000.0) + 0.01 * s),
     "extra": lambda: _make_road(2000.0, [(0, 1 / 3000), (2000, 1 / 3000)], extra=EXTRA),
+    "twoway": _two_way_road,
 }
 
 
@@ -157,16 +169,17 @@ def test_reference_line_reproduced_by_both_readers(written, name: str) -> None:
     assert abs(road.length - (model.s[-1] - model.s[0])) < 0.05
 
 
-@pytest.mark.parametrize("name", ["scurve", "clothoid5km", "extra"])
+@pytest.mark.parametrize("name", ["scurve", "clothoid5km", "extra", "twoway"])
 def test_lane_borders_reproduce_boundaries(written, name: str) -> None:
     model, path, summary = written[name]
     sections = OpenDriveMap.load(path).sample(step=0.05)
     assert len(sections) == len(model.sections)
     worst = 0.0
     for sec, sampled in zip(model.sections, sections, strict=True):
+        centre = 0 if sec.divider_id is None else sec.boundary_ids.index(sec.divider_id)
         for i, bid in enumerate(sec.boundary_ids):
             pts = _boundary_points(model, sec, bid)
-            dev = _dist_to_polyline(pts, sampled.border_xyz[-i][:, :2])
+            dev = _dist_to_polyline(pts, sampled.border_xyz[centre - i][:, :2])
             worst = max(worst, float(dev.max()))
     assert worst <= 0.03, f"lane border off by {worst:.4f} m"
     assert summary.max_border_dev_m <= 0.03
@@ -409,3 +422,36 @@ def test_asam_checker_and_sumo_accept_the_map(written, tmp_path: Path) -> None:
     assert "warning" not in (run.stdout + run.stderr).lower(), run.stdout + run.stderr
     lanes = etree.parse(str(tmp_path / "y.net.xml")).getroot().findall("edge/lane")
     assert lanes, "SUMO built lanes from the map"
+
+
+def test_two_way_road_has_left_lanes_on_the_divider(written) -> None:
+    """Lane 0 on the divider: left lanes 1, 2 outwards, right lanes -1.. , links only on their own side."""
+    model, path, _ = written["twoway"]
+    root = etree.parse(str(path)).getroot()
+    assert root.find("road").get("rule") == "RHT"
+    secs = _sections_xml(path)
+    assert [sorted(int(ln.get("id")) for ln in sec.findall("left/lane")) for sec in secs] == [[1, 2]] * 3
+    assert [len(sec.findall("right/lane")) for sec in secs] == [3, 4, 3]
+    assert secs[0].find("center/lane/roadMark").get("type") == "solid"
+    assert secs[0].find("left/lane[@id='1']/roadMark").get("type") == "broken"
+    assert secs[0].find("left/lane[@id='2']/roadMark").get("type") == "solid"
+    offsets = root.findall("road/lanes/laneOffset")
+    assert float(offsets[0].get("a")) == pytest.approx(0.5 * LANE, abs=0.01), "t of the divider"
+    for a, b in zip(secs, secs[1:], strict=False):
+        fwd = {(int(ln.get("id")), int(ln.find("link/successor").get("id")))
+               for ln in a.findall("*/lane") if ln.find("link/successor") is not None}
+        back = {(int(ln.find("link/predecessor").get("id")), int(ln.get("id")))
+                for ln in b.findall("*/lane") if ln.find("link/predecessor") is not None}
+        assert fwd == back == {(2, 2), (1, 1), (-1, -1), (-2, -2), (-3, -3)}
+    from lidar2xodr.check import check_file
+
+    verdict = check_file(path)
+    assert verdict["ok"] and verdict["asam"]["errors"] == 0, verdict["asam"]["issues"][:5]
+
+
+def test_divider_must_be_an_inner_boundary(tmp_path: Path) -> None:
+    model = _two_way_road()
+    model.sections[0].divider_id = 0
+    with pytest.raises(InputError, match="divider"):
+        export_opendrive(model, None, ExportConfig(), tmp_path / "x.xodr")
+    assert not (tmp_path / "x.xodr").exists()
