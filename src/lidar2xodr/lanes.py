@@ -45,6 +45,11 @@ Method and the decisions the paper leaves open (parameters in `LanesConfig`):
   `solid_min_run_m` = solid; dash and gap are medians of runs and gaps), and the marking width
   from the spread of the points across the fitted curve, unmixing the paint (uniform) from the
   noise (Gaussian) with two quantile ranges.
+- Two directions separated only by paint (LaneSection.divider_id): a solid line with lanes on
+  both sides over at least `divider_min_length_m`, never crossed by the ego and with the ego on
+  the side of its travel direction under right-hand traffic (see `_mark_dividers`). The
+  trajectory only tells the side; it never connects markings or counts lanes. Carriageways split
+  by a physical median (above) keep only the ego's one and get no divider.
 - Boundary ids run left to right by median offset; `Candidate.superline` is that id (-1 for
   candidates whose line was ignored).
 """
