@@ -60,12 +60,12 @@ class ExtractionConfig(_Section):
     local_neighbors: int = Field(16, description="ours: road-surface samples around a point that judge it")
     local_cell_m: float = Field(0.25, description="ours: road-surface samples are taken one per cell of this "
                                 "size, so dense near-range returns on a wide line cannot be their own background")
-    local_contrast_k: float = Field(5.0, description="ours: paint is this many robust sigmas (MAD) brighter than "
+    local_contrast_k: float = Field(4.0, description="ours: paint is this many robust sigmas (MAD) brighter than "
                                     "the median of its surroundings ...")
     local_min_contrast: float = Field(0.08, description="ours: ... and at least this much brighter (0..1 scale)")
     local_max_radius_m: float = Field(3.0, description="ours: a point whose surface samples reach farther than "
                                       "this has too little road around it to be judged, and is dropped")
-    local_max_roughness_m: float = Field(0.015, description="ours: robust height spread (MAD) of the surroundings "
+    local_max_roughness_m: float = Field(0.02, description="ours: robust height spread (MAD) of the surroundings "
                                          "above which they are not road surface (vegetation, gravel, kerbs)")
     lateral_crop_m: float | None = Field(20.0, description="ours: points farther than this left or right of the "
                                          "vehicle are dropped (embankments, other roads); None = no crop")

@@ -26,7 +26,8 @@ Decisions beyond the paper:
 from __future__ import annotations
 
 import time as _time
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -67,29 +68,44 @@ class ExtractionReport:
 
 
 def fit_ground_plane(
-    xyz: np.ndarray, cfg: ExtractionConfig, rng: np.random.Generator
+    xyz: np.ndarray, cfg: ExtractionConfig, rng: np.random.Generator, max_offset: float | None = None
 ) -> tuple[np.ndarray, float] | None:
     """Seeded RANSAC plane (n, d) with n . p + d = 0, n up; all hypotheses scored at once.
 
     `ransac_iterations` triples are drawn together; each is scored by its inliers among
-    `ransac_sample_points` random points; the best is refined twice by least squares (SVD) on its
-    inliers among all points. None when fewer than 3 points or no hypothesis is level enough.
+    `ransac_sample_points` random points; the best is refined twice by least squares (the
+    smallest eigenvector of the inliers' scatter) on its inliers among all points. With
+    `max_offset` (vehicle frame: the origin is on the road) triples are drawn from points within
+    that height of the origin and planes passing farther from it are rejected: on a motorway
+    with embankments, guard rails and vegetation only a fifth of the low points are road, and
+    unconstrained hypotheses then often settle on a shoulder or a slope. None when fewer than 3
+    points or no hypothesis is level enough.
     """
     if len(xyz) < 3:
         return None
+    cos_tilt = np.cos(np.radians(cfg.ransac_max_tilt_deg))
+    seeds = xyz
+    if max_offset is not None:
+        near = xyz[np.abs(xyz[:, 2]) < max_offset]
+        seeds = near if len(near) >= 3 else xyz
     m = min(len(xyz), cfg.ransac_sample_points)
-    sample = xyz[rng.choice(len(xyz), size=m, replace=False)] if m < len(xyz) else xyz
-    tri = xyz[rng.integers(0, len(xyz), size=(cfg.ransac_iterations, 3))]
+    sample_t = (xyz[rng.integers(0, len(xyz), size=m)] if m < len(xyz) else xyz).T.copy()
+    tri = seeds[rng.integers(0, len(seeds), size=(cfg.ransac_iterations, 3))]
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     norm = np.linalg.norm(n, axis=1)
     ok = norm > 1e-9
     n = n / np.where(ok, norm, 1.0)[:, None]
     n *= np.where(n[:, 2] < 0, -1.0, 1.0)[:, None]
-    ok &= n[:, 2] >= np.cos(np.radians(cfg.ransac_max_tilt_deg))
+    ok &= n[:, 2] >= cos_tilt
+    d = -np.einsum("ij,ij->i", n, tri[:, 0])
+    if max_offset is not None:
+        ok &= np.abs(d) <= max_offset
     if not ok.any():
         return None
-    d = -np.einsum("ij,ij->i", n, tri[:, 0])
-    score = (np.abs(sample @ n.T + d) < cfg.ransac_distance_m).sum(axis=0)
+    dist = n @ sample_t
+    dist += d[:, None]
+    np.abs(dist, out=dist)
+    score = np.count_nonzero(dist < cfg.ransac_distance_m, axis=1)
     score[~ok] = -1
     best = int(np.argmax(score))
     normal, offset = n[best], float(d[best])
@@ -98,9 +114,9 @@ def fit_ground_plane(
         if len(inl) < 3:
             break
         c = inl.mean(axis=0)
-        _, _, vt = np.linalg.svd(inl - c, full_matrices=False)
-        cand = vt[2] if vt[2, 2] >= 0 else -vt[2]
-        if cand[2] < np.cos(np.radians(cfg.ransac_max_tilt_deg)):
+        _, vec = np.linalg.eigh(inl.T @ inl / len(inl) - np.outer(c, c))
+        cand = vec[:, 0] if vec[2, 0] >= 0 else -vec[:, 0]
+        if cand[2] < cos_tilt or (max_offset is not None and abs(cand @ c) > max_offset):
             break
         normal, offset = cand, float(-cand @ c)
     return normal, offset
@@ -168,16 +184,152 @@ def radius_outliers(xyz: np.ndarray, radius: float, min_neighbors: int) -> np.nd
     return np.isfinite(dist[:, 0])
 
 
+_CELL_TABLE = 1 << 15
+_BAND_M = 10.0
+_BAND_QUANTILE = 0.25
+_LEVELS = 256
+
+
+def cell_samples(xy: np.ndarray, cell_m: float) -> np.ndarray:
+    """Indices of at most one point per `cell_m` grid cell: a density-capped sample of the surface.
+
+    Cells are hashed into a fixed table (O(n), no sort); cells that share a slot give it one
+    sample between them, which only thins the sample where the surface is densely sampled.
+    """
+    ij = np.floor(xy * (1.0 / cell_m)).astype(np.int64)
+    slot = ((ij[:, 0] * 73856093) ^ (ij[:, 1] * 19349663)) & (_CELL_TABLE - 1)
+    table = np.full(_CELL_TABLE, -1, dtype=np.int32)
+    table[slot] = np.arange(len(xy), dtype=np.int32)
+    return table[table >= 0]
+
+
+def _preselect(intensity: np.ndarray, r: np.ndarray, min_contrast: float) -> np.ndarray:
+    """Points at least `min_contrast` brighter than the lower quartile of their 10 m range band.
+
+    Only these are judged by the local test (speed). Paint can be lost here only where the road
+    around it is darker than three quarters of the road at that range (the local test compares
+    with the median around the point, which then lies below the band's lower quartile).
+    Quartiles come from a 256-level histogram per band (one bincount, no sort).
+    """
+    band = np.minimum((r * (1.0 / _BAND_M)).astype(np.int64), 63)
+    level = np.minimum((intensity * _LEVELS).astype(np.int64), _LEVELS - 1)
+    hist = np.bincount(band * _LEVELS + level, minlength=64 * _LEVELS).reshape(64, _LEVELS)
+    cum = np.cumsum(hist, axis=1)
+    floor = (np.argmax(cum >= _BAND_QUANTILE * cum[:, -1:], axis=1) / _LEVELS)
+    return intensity >= floor[band] + min_contrast
+
+
+def local_paint_mask(
+    xyz: np.ndarray, intensity: np.ndarray, height: np.ndarray, r: np.ndarray, cfg: ExtractionConfig
+) -> tuple[np.ndarray, float | None]:
+    """Mask of paint among one scan's road-band points, and the median local threshold applied.
+
+    Paint is a bright outlier of the road surface around it: a point is paint when its intensity
+    is at least max(`local_contrast_k` robust sigmas, `local_min_contrast`) above the median of
+    its `local_neighbors` nearest surface samples (one per `local_cell_m` cell, xy distance), those
+    samples lie within `local_max_radius_m`, and their heights above the ground plane spread by at
+    most `local_max_roughness_m` (robust sigma). The reference is local, so intensity falling
+    with range, lasers of one sensor calibrated differently (Pandar64) and worn or wet asphalt
+    need no per-sensor model; a bright, rough shoulder (grass, gravel: 0.3..0.5 on the aiMotive
+    drive, brighter than its faint dashes) is not paint because its surroundings are as bright and
+    not flat.
+    """
+    out = np.zeros(len(xyz), dtype=bool)
+    k = cfg.local_neighbors
+    if len(xyz) <= k:
+        return out, None
+    idx = np.flatnonzero(_preselect(intensity, r, cfg.local_min_contrast))
+    if len(idx) == 0:
+        return out, None
+    reps = cell_samples(xyz[:, :2], cfg.local_cell_m)
+    if len(reps) < k:
+        return out, None
+    dist, nn = cKDTree(xyz[reps, :2]).query(xyz[idx, :2], k=k)
+    nn = reps[nn]
+    around = intensity[nn]
+    med = np.median(around, axis=1)
+    sigma = 1.4826 * np.median(np.abs(around - med[:, None]), axis=1)
+    thr = med + np.maximum(cfg.local_contrast_k * sigma, cfg.local_min_contrast)
+    hs = height[nn]
+    hmed = np.median(hs, axis=1)
+    rough = 1.4826 * np.median(np.abs(hs - hmed[:, None]), axis=1)
+    ok = (intensity[idx] >= thr) & (dist[:, -1] <= cfg.local_max_radius_m) & (rough <= cfg.local_max_roughness_m)
+    out[idx[ok]] = True
+    return out, float(np.median(thr))
+
+
 @dataclass
-class _Pending:
-    """One scan's road band in the vehicle frame, waiting for the threshold and/or its pose."""
+class ScanMarks:
+    """One scan after the per-scan filters (vehicle frame): what accumulation and odometry need.
+
+    `final` is False while a per-drive threshold is still unknown: the points are then the whole
+    road band and `calib` the intensities that will set the threshold.
+    """
 
     index: int
     stamp: float
+    t_max: float | None
+    plane: tuple[np.ndarray, float]
+    fell_back: bool
+    band_points: int
     xyz: np.ndarray
     intensity: np.ndarray
     times: np.ndarray | None
-    plane: tuple[np.ndarray, float]
+    final: bool = True
+    calib: np.ndarray | None = None
+    local_threshold: float | None = None
+    odo_xyz: np.ndarray | None = None
+    odo_times: np.ndarray | None = None
+
+
+def filter_scan(scan: Scan, cfg: ExtractionConfig, mount_z: float, max_range: float,
+                threshold: float | None, odometry: bool = False) -> ScanMarks:
+    """The per-scan stage: crop, ground plane, road band, marking selection (module docstring).
+
+    Pure and seeded by (seed, scan index): scans can be filtered in any order or process.
+    `threshold` is the fixed or per-drive threshold (None: not known yet; unused by 'local').
+    `odometry` also returns the scan's points above the ground for LiDAR odometry.
+    """
+    xyz = scan.xyz
+    x, y = xyz[:, 0], xyz[:, 1]
+    r2 = x * x + y * y
+    keep = (r2 < max_range * max_range) & (xyz[:, 2] < mount_z - cfg.below_sensor_margin_m)
+    if cfg.lateral_crop_m is not None:
+        keep &= np.abs(y) <= cfg.lateral_crop_m
+    idx = np.flatnonzero(keep)
+    pts = xyz[idx]
+    r = np.sqrt(r2[idx])
+    rng = np.random.default_rng([cfg.seed, scan.index])
+    plane = fit_ground_plane(pts[r < cfg.ransac_range_m], cfg, rng, cfg.ground_prior_m)
+    fell_back = plane is None
+    if plane is None:
+        plane = (np.array([0.0, 0.0, 1.0]), 0.0)
+    n, d = plane
+    h = pts @ n + d
+    band = (h <= cfg.ground_margin_m) & (h >= -cfg.ground_below_m)
+    sel = idx[band]
+    inten = scan.intensity[sel]
+    out = ScanMarks(index=scan.index, stamp=scan.stamp, t_max=None if scan.times is None else float(scan.times.max()),
+                    plane=plane, fell_back=fell_back, band_points=len(sel), xyz=xyz[sel], intensity=inten,
+                    times=None if scan.times is None else scan.times[sel])
+    if not cfg.auto_threshold or (cfg.auto_method == "drive" and threshold is not None):
+        mark = inten >= (cfg.reflectivity_threshold if not cfg.auto_threshold else threshold)
+    elif cfg.auto_method == "local":
+        mark, out.local_threshold = local_paint_mask(out.xyz, inten, h[band], r[band], cfg)
+    else:
+        mark = None
+        out.final = False
+        out.calib = inten[r[band] < cfg.auto_threshold_range_m]
+    if mark is not None:
+        out.xyz, out.intensity = out.xyz[mark], inten[mark]
+        out.times = None if out.times is None else out.times[mark]
+    if odometry:
+        hall = xyz @ n + d
+        rr = np.sqrt(r2)
+        o = (hall > cfg.odometry_min_height_m) & (rr < cfg.odometry_max_range_m) & (rr > 2.0)
+        out.odo_xyz = xyz[o]
+        out.odo_times = None if scan.times is None else scan.times[o]
+    return out
 
 
 class _PoseSource:
@@ -199,16 +351,13 @@ class _PoseSource:
             self.odo = LidarOdometry(cfg)
         self.fed = 0
 
-    def feed(self, scan: Scan, plane: tuple[np.ndarray, float]) -> int:
-        """Give the scan to the odometry (non-ground points); returns how many scans have poses."""
+    def feed(self, marks: ScanMarks) -> int:
+        """Give the scan to the odometry (its points above the ground); returns how many scans have poses."""
         self.fed += 1
         if self.odo is None:
             return self.fed
-        n, d = plane
-        h = scan.xyz @ n + d
-        r = np.linalg.norm(scan.xyz[:, :2], axis=1)
-        keep = (h > self.cfg.odometry_min_height_m) & (r < self.cfg.odometry_max_range_m) & (r > 2.0)
-        return self.odo.add(scan.stamp, scan.xyz[keep], None if scan.times is None else scan.times[keep])
+        assert marks.odo_xyz is not None
+        return self.odo.add(marks.stamp, marks.odo_xyz, marks.odo_times)
 
     def finish(self) -> int:
         return self.odo.finish() if self.odo is not None else self.fed
@@ -225,23 +374,17 @@ class _PoseSource:
         pos = np.column_stack([np.interp(uniq, self.traj.times, self.traj.positions[:, j]) for j in range(3)])
         return rot[inv], pos[inv]
 
-    def to_world(self, k: int, p: _Pending, xyz: np.ndarray, times: np.ndarray | None) -> np.ndarray:
+    def place(self, k: int, m: ScanMarks, xyz: np.ndarray, times: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """The points in the world frame (each at its own time) and the vehicle pose at the scan stamp."""
         if self.odo is not None:
-            return self.odo.to_world(k, xyz, times)
-        t = np.full(len(xyz), p.stamp) if times is None else times
-        if len(t) == 0:
-            return xyz.reshape(0, 3)
-        rot, pos = self._interp(t, f"{self.name} scan {p.index}")
-        return rot.apply(xyz) + pos
-
-    def pose_at_stamp(self, k: int, p: _Pending) -> np.ndarray:
-        if self.odo is not None:
-            return self.odo.poses[k]
-        rot, pos = self._interp(np.array([p.stamp]), f"{self.name} scan {p.index}")
+            return self.odo.to_world(k, xyz, times), self.odo.poses[k]
+        t = np.full(len(xyz), m.stamp) if times is None else times
+        rot, pos = self._interp(np.concatenate([[m.stamp], t]), f"{self.name} scan {m.index}")
         T = np.eye(4)
-        T[:3, :3] = rot.as_matrix()[0]
+        T[:3, :3] = rot[0].as_matrix()
         T[:3, 3] = pos[0]
-        return T
+        world = rot[1:].apply(xyz) + pos[1:] if len(xyz) else xyz.reshape(0, 3)
+        return world, T
 
     def trajectory(self) -> Trajectory:
         return self.odo.trajectory if self.odo is not None else self.traj
@@ -256,21 +399,30 @@ def _mode(dataset: Dataset, cfg: ExtractionConfig) -> str:
     return "gnss"
 
 
-def _road_band(scan: Scan, cfg: ExtractionConfig, mount_z: float, max_range: float,
-               rng: np.random.Generator) -> tuple[np.ndarray, tuple[np.ndarray, float], bool]:
-    """Mask of the scan's road-band points, its ground plane, and whether the plane fell back."""
-    xyz = scan.xyz
-    r = np.linalg.norm(xyz[:, :2], axis=1)
-    below = (r < max_range) & (xyz[:, 2] < mount_z - cfg.below_sensor_margin_m)
-    cand = xyz[below & (r < cfg.ransac_range_m)]
-    plane = fit_ground_plane(cand, cfg, rng)
-    fallback = plane is None
-    if plane is None:
-        plane = (np.array([0.0, 0.0, 1.0]), 0.0)
-    n, d = plane
-    h = xyz @ n + d
-    band = below & (h <= cfg.ground_margin_m) & (h >= -cfg.ground_below_m)
-    return band, plane, fallback
+def _filtered(dataset: Dataset, cfg: ExtractionConfig, state: dict, odometry: bool) -> Iterator[ScanMarks]:
+    """`filter_scan` over the drive, in recording order; with `workers` > 1 in a process pool.
+
+    The pool keeps at most 2 scans per worker in flight (memory stays flat on long drives) and
+    results come back in order, so the output is the same as with one process. `state` holds the
+    threshold known when a scan is handed out (a per-drive threshold may still be unknown).
+    """
+    mount_z = float(dataset.sensor.mount[2, 3])
+    max_range = cfg.max_range_m if cfg.max_range_m is not None else dataset.sensor.max_range_m
+    if cfg.workers <= 1:
+        for scan in dataset:
+            yield filter_scan(scan, cfg, mount_z, max_range, state["threshold"], odometry)
+        return
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    window: deque = deque()
+    with ProcessPoolExecutor(max_workers=cfg.workers, mp_context=mp.get_context("forkserver")) as pool:
+        for scan in dataset:
+            window.append(pool.submit(filter_scan, scan, cfg, mount_z, max_range, state["threshold"], odometry))
+            if len(window) >= 2 * cfg.workers:
+                yield window.popleft().result()
+        while window:
+            yield window.popleft().result()
 
 
 def extract_markings(
@@ -291,10 +443,13 @@ def extract_markings(
     mode = _mode(dataset, cfg)
     rep.odometry = mode
     poses = _PoseSource(dataset, cfg, mode)
-    threshold: float | None = None if cfg.auto_threshold else cfg.reflectivity_threshold
+    local = cfg.auto_threshold and cfg.auto_method == "local"
+    state: dict = {"threshold": None if cfg.auto_threshold else cfg.reflectivity_threshold}
     rep.threshold = cfg.reflectivity_threshold
-    pending: list[_Pending] = []
+    rep.threshold_auto = local
+    pending: deque[ScanMarks] = deque()
     calib: list[np.ndarray] = []
+    local_thr: list[float] = []
     out_xyz: list[np.ndarray] = []
     out_int: list[np.ndarray] = []
     out_scan: list[np.ndarray] = []
@@ -307,70 +462,68 @@ def extract_markings(
 
     def flush(ready: int) -> None:
         nonlocal flushed
-        while pending and threshold is not None and flushed < ready:
-            p = pending.pop(0)
-            keep = p.intensity >= threshold
-            times = None if p.times is None else p.times[keep]
-            world = poses.to_world(flushed, p, p.xyz[keep], times)
+        threshold = state["threshold"]
+        while pending and (local or threshold is not None) and flushed < ready:
+            m = pending.popleft()
+            xyz, inten, times = m.xyz, m.intensity, m.times
+            if not m.final:
+                keep = inten >= threshold
+                xyz, inten, times = xyz[keep], inten[keep], None if times is None else times[keep]
+            world, T = poses.place(flushed, m, xyz, times)
             out_xyz.append(world)
-            out_int.append(p.intensity[keep])
-            out_scan.append(np.full(len(world), p.index, dtype=np.int32))
-            out_time.append(np.full(len(world), p.stamp) if times is None else times)
-            T = poses.pose_at_stamp(flushed, p)
-            n, d = p.plane
+            out_int.append(inten)
+            out_scan.append(np.full(len(world), m.index, dtype=np.int32))
+            out_time.append(np.full(len(world), m.stamp) if times is None else times)
+            n, d = m.plane
             foot = np.array([0.0, 0.0, -d / n[2]])
-            plane_rows.append(np.concatenate([[p.stamp], T[:3, :3] @ foot + T[:3, 3], T[:3, :3] @ n]))
+            plane_rows.append(np.concatenate([[m.stamp], T[:3, :3] @ foot + T[:3, 3], T[:3, :3] @ n]))
             flushed += 1
 
     def set_threshold() -> None:
-        nonlocal threshold
         values = np.concatenate(calib) if calib else np.zeros(0)
         if len(values) >= 100:
-            threshold = auto_threshold(values, cfg.auto_threshold_mad_k)
+            state["threshold"] = auto_threshold(values, cfg.auto_threshold_mad_k)
             rep.threshold_auto = True
         else:
-            threshold = cfg.reflectivity_threshold
-        rep.threshold = threshold
+            state["threshold"] = cfg.reflectivity_threshold
+        rep.threshold = state["threshold"]
         calib.clear()
 
-    for scan in dataset:
-        n_bad = len(dataset.stats.bad_scans)
-        if n_bad > cfg.max_bad_scan_share * rep.scans_total:
+    for m in _filtered(dataset, cfg, state, odometry=mode == "lidar"):
+        if len(dataset.stats.bad_scans) > cfg.max_bad_scan_share * rep.scans_total:
             _too_many_bad(dataset, cfg)
-        max_range = cfg.max_range_m if cfg.max_range_m is not None else dataset.sensor.max_range_m
-        rng = np.random.default_rng([cfg.seed, scan.index])
-        band, plane, fell_back = _road_band(scan, cfg, float(dataset.sensor.mount[2, 3]), max_range, rng)
-        rep.ground_fallbacks += int(fell_back)
-        if scan.times is not None:
-            band &= scan.times > last_time
-            last_time = max(last_time, float(scan.times.max()))
-        xyz, inten = scan.xyz[band], scan.intensity[band]
-        times = None if scan.times is None else scan.times[band]
-        rep.band_points += len(xyz)
-        if threshold is None:
-            r = np.linalg.norm(xyz[:, :2], axis=1)
-            calib.append(inten[r < cfg.auto_threshold_range_m])
-            keep = np.ones(len(xyz), dtype=bool)
-        else:
-            keep = inten >= threshold
-        pending.append(_Pending(scan.index, scan.stamp, xyz[keep], inten[keep],
-                                None if times is None else times[keep], plane))
-        stamp_first = scan.stamp if stamp_first is None else stamp_first
-        stamp_last = scan.stamp
-        ready = poses.feed(scan, plane)
+        rep.ground_fallbacks += int(m.fell_back)
+        rep.band_points += m.band_points
+        if m.t_max is not None:
+            assert m.times is not None
+            fresh = m.times > last_time
+            if not fresh.all():
+                m.xyz, m.intensity, m.times = m.xyz[fresh], m.intensity[fresh], m.times[fresh]
+            last_time = max(last_time, m.t_max)
+        if m.calib is not None:
+            calib.append(m.calib)
+        if m.local_threshold is not None:
+            local_thr.append(m.local_threshold)
+        pending.append(m)
+        stamp_first = m.stamp if stamp_first is None else stamp_first
+        stamp_last = m.stamp
+        ready = poses.feed(m)
+        m.odo_xyz = m.odo_times = None
         rep.scans_used += 1
-        if threshold is None and rep.scans_used >= cfg.auto_threshold_scans:
+        if state["threshold"] is None and not local and rep.scans_used >= cfg.auto_threshold_scans:
             set_threshold()
         flush(ready)
-        if progress is not None and scan.index + 1 > reported:
-            progress(scan.index + 1 - reported)
-            reported = scan.index + 1
+        if progress is not None and m.index + 1 > reported:
+            progress(m.index + 1 - reported)
+            reported = m.index + 1
     if len(dataset.stats.bad_scans) > cfg.max_bad_scan_share * rep.scans_total:
         _too_many_bad(dataset, cfg)
     if rep.scans_used == 0:
         raise InputError(dataset.path, "no readable scan")
-    if threshold is None:
+    if state["threshold"] is None and not local:
         set_threshold()
+    if local and local_thr:
+        rep.threshold = float(np.median(local_thr))
     flush(poses.finish())
     rep.bad_scans = list(dataset.stats.bad_scans)
     rep.points_read = dataset.stats.points_read
