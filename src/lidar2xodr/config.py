@@ -71,6 +71,10 @@ class ExtractionConfig(_Section):
                                          "vehicle are dropped (embankments, other roads); None = no crop")
     ground_prior_m: float = Field(0.5, description="ours: the ground plane passes within this height of the "
                                   "vehicle origin (on the road by definition of the vehicle frame)")
+    ground_rings: int = Field(3, ge=0, description="ours: range rings beyond ransac_range_m with their own "
+                              "ground plane, each twice as wide as the one before; 0 = one plane per scan (paper)")
+    ground_ring_window_m: float = Field(0.5, description="ours: a ring's plane is refitted from its points this "
+                                        "close to the plane of the ring before")
     workers: int = Field(1, ge=1, description="ours: processes filtering scans in parallel (same result)")
 
 
@@ -133,6 +137,9 @@ class LanesConfig(_Section):
                                    "make a solid line")
     divider_min_length_m: float = Field(300.0, description="ours: a solid line with lanes on both sides that the "
                                         "ego never crosses separates the two directions when it is that long")
+    divider_max_wrong_side_m: float = Field(10.0, description="ours: stations with the ego on the wrong side of a "
+                                            "divider candidate it may have (projection noise at a U-turn); a lane "
+                                            "change across it lasts far longer")
 
 
 class ExportConfig(_Section):

@@ -1107,6 +1107,12 @@ def build_lane_model(
     pts = _Points(k_pt, t_pt, s_pt, inside, label, xyz[:, 2])
     model = _assemble(cloud, pieces, superline, frame, fit, structure, pts, warnings, cfg)
     _mark_dividers(model, _ego_track(frame, ego, model), cfg)
+    counts = [len(sec.boundary_ids) - 1 for sec in model.sections]
+    if len(set(counts)) > 1:
+        model.warnings.append(
+            "lane count changes along the road: "
+            + ", ".join(f"{n} from s {sec.s_start:.0f} m" for n, sec in zip(counts, model.sections, strict=True))
+        )
     longest: dict[int, tuple[int, int]] = {}
     for piece, i in zip(pieces, owner, strict=True):
         if i not in longest or len(piece.centers) > longest[i][0]:
@@ -1204,12 +1210,17 @@ class _EgoTrack:
 
 
 def _ego_track(frame: Frame, ego: np.ndarray | None, model: LaneModel) -> _EgoTrack | None:
-    """The trajectory on the model's stations (the model starts at a station of `frame`)."""
+    """The trajectory on the model's stations (the model starts at a station of `frame`).
+
+    Only samples heading within 14 degrees of the road axis are kept (a lane change takes a few):
+    a U-turn at the end of the drive (or a stop) has no travel direction along the road, so it
+    cannot tell a divider's side.
+    """
     if ego is None or len(ego) < 3:
         return None
     s_e, t_e, inside = frame.project(ego)
     ds = np.gradient(s_e)
-    moving = np.abs(ds) > 1e-3
+    moving = (np.abs(ds) > 1e-3) & (np.abs(np.gradient(t_e)) < 0.25 * np.abs(ds))
     step = float(frame.s[1] - frame.s[0])
     first = int(np.argmin(np.linalg.norm(frame.xy - model.reference[0, :2], axis=1)))
     k = np.rint(s_e / step).astype(np.int64) - first
@@ -1224,7 +1235,8 @@ def _mark_dividers(model: LaneModel, ego: _EgoTrack | None, cfg: LanesConfig) ->
     the line is solid, has lanes on both sides over sections of at least `divider_min_length_m`
     together, and every trajectory sample beside it lies on the side of its own travel direction
     (right of it while moving along s, left while moving against s), over at least
-    `divider_min_length_m` of stations: the ego never crossed it. A solid line inside one
+    `divider_min_length_m` of stations, up to `divider_max_wrong_side_m` of stations (projection
+    noise where a U-turn ends the drive): the ego never crossed it. A solid line inside one
     carriageway (an exit lane's, a lane drop's) is short, or crossed, or has the ego on its wrong
     side, so it is no divider. Without a trajectory no divider is set (the side cannot be known);
     where several lines qualify, the one nearest the ego bounds its carriageway. Sections where the
@@ -1242,6 +1254,7 @@ def _mark_dividers(model: LaneModel, ego: _EgoTrack | None, cfg: LanesConfig) ->
     ok = (ego.k >= 0) & (ego.k < len(model.s))
     k, t_e, direction = ego.k[ok], ego.t[ok], ego.direction[ok]
     closeness: dict[int, float] = {}
+    along: dict[int, bool] = {}
     for bid, secs in inner.items():
         length = sum(model.sections[j].s_end - model.sections[j].s_start for j in secs)
         if length < cfg.divider_min_length_m:
@@ -1253,11 +1266,49 @@ def _mark_dividers(model: LaneModel, ego: _EgoTrack | None, cfg: LanesConfig) ->
         right_side = t_e[beside] < t_b[beside]
         consistent = np.where(direction[beside] > 0, right_side, ~right_side)
         covered = len(np.unique(k[beside])) * step
-        if consistent.all() and covered >= cfg.divider_min_length_m:
+        wrong = len(np.unique(k[beside][~consistent])) * step
+        if wrong <= cfg.divider_max_wrong_side_m and covered >= cfg.divider_min_length_m:
             closeness[bid] = float(np.median(np.abs(t_e[beside] - t_b[beside])))
+            along[bid] = bool(np.median(direction[beside]) > 0)
     for j, sec in enumerate(model.sections):
         found = [bid for bid in closeness if j in inner[bid]]
         sec.divider_id = min(found, key=lambda b: (closeness[b], b)) if found else None
+    _drop_partial_opposite(model, along)
+
+
+def _drop_partial_opposite(model: LaneModel, along: dict[int, bool]) -> None:
+    """Keep the opposite carriageway only where it was seen whole.
+
+    A carriageway is complete when its outermost line is a solid edge line. In every section whose
+    outermost line beyond the divider (the side the ego does not drive) is not solid, the opposite
+    lanes are left out: the divider becomes the leftmost boundary (lane 0 stays on it) and only the
+    ego's direction is exported there, with a warning. A wrong lane count is worse than a missing
+    carriageway. Only done when the ego drives along s (the opposite lanes are left of the
+    divider); against s the section is left as it is, because a one-way export runs along s.
+    """
+    by_id = {b.id: b for b in model.boundaries}
+    cut_at: list[str] = []
+    for sec in model.sections:
+        d = sec.divider_id
+        if d is None or not along.get(d, False) or by_id[sec.boundary_ids[0]].mark_type == "solid":
+            continue
+        cut_at.append(f"{sec.s_start:.0f}-{sec.s_end:.0f}")
+        sec.boundary_ids = sec.boundary_ids[sec.boundary_ids.index(d) :]
+        sec.divider_id = None
+    if not cut_at:
+        return
+    merged: list[LaneSection] = []
+    for sec in model.sections:
+        prev = merged[-1] if merged else None
+        if prev and prev.boundary_ids == sec.boundary_ids and prev.divider_id == sec.divider_id:
+            prev.s_end = sec.s_end
+        else:
+            merged.append(sec)
+    model.sections = merged
+    model.warnings.append(
+        "the opposite carriageway was seen only partly on s " + ", ".join(cut_at) + " m (its outermost "
+        "line is not a solid edge line): only the ego's direction is exported there"
+    )
 
 
 def _label_by_candidates(
@@ -1438,12 +1489,6 @@ def _assemble(
     for i, c in enumerate(candidates):
         c.superline = int(new_id[superline[i]]) if superline[i] < len(new_id) else -1
     warnings.extend(_unused_notes(fit.t[:, a:b], on_new, ordered, s))
-    counts = [len(sec.boundary_ids) - 1 for sec in sections]
-    if len(set(counts)) > 1:
-        warnings.append(
-            "lane count changes along the road: "
-            + ", ".join(f"{n} from s {sec.s_start:.0f} m" for n, sec in zip(counts, sections, strict=False))
-        )
     return LaneModel(
         s=s,
         reference=reference,
