@@ -27,8 +27,12 @@ from lidar2xodr.errors import InputError, OutputError
 from lidar2xodr.extraction import (
     ExtractionReport,
     auto_threshold,
+    cell_samples,
     extract_markings,
+    filter_scan,
     fit_ground_plane,
+    ground_heights,
+    local_paint_mask,
     otsu_threshold,
     radius_outliers,
 )
@@ -195,6 +199,117 @@ def test_ransac_rejects_steep_planes_and_tiny_input() -> None:
     assert fit_ground_plane(wall[:2], ExtractionConfig(), rng) is None
 
 
+def test_ground_plane_prior_ignores_a_dominant_embankment() -> None:
+    """aiMotive-like: the road is a fifth of the low points; a hillside beside it holds most.
+
+    Unconstrained RANSAC settles on the hillside; the prior (the plane passes within
+    `ground_prior_m` of the vehicle origin, which lies on the road) keeps the road.
+    """
+    rng = np.random.default_rng(11)
+    road = np.column_stack([rng.uniform(-5, 40, 2000), rng.uniform(-8, 4, 2000), rng.normal(0, 0.01, 2000)])
+    hx, hy = rng.uniform(-5, 40, 7000), rng.uniform(8, 30, 7000)
+    hill = np.column_stack([hx, hy, 1.2 + 0.05 * (hy - 8) + rng.normal(0, 0.01, 7000)])
+    clutter = np.column_stack([rng.uniform(-5, 40, (1000, 2)), rng.uniform(0.2, 1.5, 1000)])
+    pts = np.vstack([road, hill, clutter])
+    cfg = ExtractionConfig()
+    free = fit_ground_plane(pts, cfg, np.random.default_rng(0))
+    assert free is not None and abs(free[1]) > 0.5  # the hillside wins without the prior
+    for seed in range(5):
+        plane = fit_ground_plane(pts, cfg, np.random.default_rng(seed), max_offset=cfg.ground_prior_m)
+        assert plane is not None
+        assert plane[0][2] > 0.9995 and abs(plane[1]) < 0.02
+
+
+def test_ground_rings_follow_a_grade_change() -> None:
+    """A 2 % grade change 40 m ahead puts the road 1.2 m below the near plane at 100 m: one plane
+    loses the far paint from the 0.15 m band; the range rings keep the road at height ~0."""
+    rng = np.random.default_rng(12)
+    x = rng.uniform(2, 150, 20000)
+    y = rng.uniform(-8, 8, 20000)
+    z = np.where(x > 40, -0.02 * (x - 40), 0.0) + rng.normal(0, 0.01, 20000)
+    pts = np.column_stack([x, y, z])
+    r = np.linalg.norm(pts[:, :2], axis=1)
+    plane = (np.array([0.0, 0.0, 1.0]), 0.0)
+    one = ground_heights(pts, r, plane, ExtractionConfig(ground_rings=0))
+    rings = ground_heights(pts, r, plane, ExtractionConfig())
+    far = x > 90
+    assert np.median(np.abs(one[far])) > 0.8
+    assert np.percentile(np.abs(rings), 95) < 0.1
+    assert np.median(np.abs(rings[far])) < 0.03
+
+
+def _road_scan(seed: int, n: int = 40000) -> dict:
+    """One scan's road band (vehicle frame): asphalt whose intensity falls with range, a bright solid
+    line at y = 1.2 with a bright, rough verge beyond it (aiMotive: 0.3..0.5, 4 cm high), and a
+    faint dashed line at y = -2.5 only twice as bright as the asphalt (aiMotive: 0.33 vs 0.17)."""
+    rng = np.random.default_rng(seed)
+    x, y = rng.uniform(3, 45, n), rng.uniform(-6, 5, n)
+    r = np.hypot(x, y)
+    fall = 1.0 - r / 120.0
+    inten = 0.17 * fall * np.exp(0.1 * rng.standard_normal(n))
+    height = rng.normal(0, 0.005, n)
+    solid = np.abs(y - 1.2) < 0.075
+    dash = (np.abs(y + 2.5) < 0.075) & (np.mod(x, 18.0) < 6.0)
+    verge = y > 1.6
+    inten[solid] = 0.7 * fall[solid] * np.exp(0.1 * rng.standard_normal(solid.sum()))
+    inten[dash] = 0.33 * fall[dash] * np.exp(0.1 * rng.standard_normal(dash.sum()))
+    inten[verge] = np.clip(rng.normal(0.37, 0.08, verge.sum()), 0, 1)
+    height[verge] = rng.normal(0.04, 0.03, verge.sum())
+    return {"xyz": np.column_stack([x, y, height]), "r": r, "intensity": inten.astype(np.float32), "height": height,
+            "solid": solid, "dash": dash, "verge": verge, "asphalt": ~(solid | dash | verge)}
+
+
+def test_local_test_finds_faint_dashes_and_rejects_the_bright_verge() -> None:
+    s = _road_scan(13)
+    mark, thr = local_paint_mask(s["xyz"], s["intensity"], s["height"], s["r"], ExtractionConfig())
+    assert thr is not None
+    assert mark[s["dash"]].mean() > 0.9 and mark[s["solid"]].mean() > 0.8
+    assert mark[s["verge"]].mean() < 0.01
+    assert mark[s["asphalt"]].mean() < 2e-4
+    # one threshold for the whole drive cannot do both: it loses the dashes or takes the verge
+    drive = auto_threshold(s["intensity"][s["r"] < 40], 3.0)
+    taken = s["intensity"] >= drive
+    assert taken[s["dash"]].mean() < 0.5 or taken[s["verge"]].mean() > 0.2
+
+
+def test_without_road_around_the_fixed_threshold_judges() -> None:
+    """Far range (Livox): dark asphalt no longer returns, only paint does; such points have no
+    surface to compare with and fall back to the paper's 50 %."""
+    s = _road_scan(14, n=8000)
+    far = np.column_stack([np.linspace(80, 130, 60), np.full(60, -2.5), np.zeros(60)])
+    xyz = np.vstack([s["xyz"], far])
+    inten = np.concatenate([s["intensity"], np.where(np.arange(60) % 2 == 0, 0.8, 0.3)]).astype(np.float32)
+    height = np.concatenate([s["height"], np.zeros(60)])
+    r = np.concatenate([s["r"], far[:, 0]])
+    mark, _ = local_paint_mask(xyz, inten, height, r, ExtractionConfig())
+    assert np.array_equal(mark[-60:], inten[-60:] >= 0.5)
+
+
+def test_cell_samples_take_one_point_per_cell() -> None:
+    rng = np.random.default_rng(15)
+    xy = rng.uniform(-20, 20, (30000, 2))
+    reps = cell_samples(xy, 0.25)
+    cells = np.floor(xy[reps] / 0.25).astype(np.int64)
+    assert len(np.unique(cells, axis=0)) == len(reps)
+    assert len(reps) > 0.8 * len(np.unique(np.floor(xy / 0.25).astype(np.int64), axis=0))  # 17.7k cells
+    assert np.array_equal(reps, cell_samples(xy, 0.25))
+
+
+def test_lateral_crop_drops_far_side_lines() -> None:
+    from lidar2xodr.data import Scan
+
+    s = _road_scan(16, n=20000)
+    rng = np.random.default_rng(17)
+    far = np.column_stack([rng.uniform(3, 45, 8000), rng.uniform(21, 27, 8000), rng.normal(0, 0.005, 8000)])
+    side = np.column_stack([np.linspace(5, 40, 300), np.full(300, 24.0), np.zeros(300)])
+    inten = np.concatenate([s["intensity"], np.full(8000, 0.15), np.full(300, 0.9)]).astype(np.float32)
+    scan = Scan(index=0, stamp=0.0, xyz=np.vstack([s["xyz"], far, side]), intensity=inten)
+    cropped = filter_scan(scan, ExtractionConfig(), 1.8, 100.0, None)
+    wide = filter_scan(scan, ExtractionConfig(lateral_crop_m=None), 1.8, 100.0, None)
+    assert np.all(np.abs(cropped.xyz[:, 1]) <= 20.0) and len(cropped.xyz) > 100
+    assert np.sum(wide.xyz[:, 1] > 20.0) > 250
+
+
 # --- thresholds and outliers ------------------------------------------------------------------
 
 
@@ -359,6 +474,20 @@ def test_corrupt_scans_skipped_until_too_many(drive: Drive, tmp_path: Path) -> N
     (folder / "scans" / "000007.pcd").write_bytes(b"")
     with pytest.raises(InputError, match=r"2 of 12 scans unreadable.*000004.pcd"):
         extract_markings(open_dataset(folder), ExtractionConfig(max_bad_scan_share=0.1))
+
+
+def test_process_pool_gives_the_same_cloud(drive_dir: Path) -> None:
+    one = extract_markings(open_dataset(drive_dir), ExtractionConfig())
+    two = extract_markings(open_dataset(drive_dir), ExtractionConfig(workers=2))
+    assert np.array_equal(one.xyz, two.xyz) and np.array_equal(one.scan_index, two.scan_index)
+    assert np.array_equal(one.planes.normals_world, two.planes.normals_world)
+
+
+def test_per_drive_threshold_is_still_available(drive_dir: Path) -> None:
+    rep = ExtractionReport()
+    cloud = extract_markings(open_dataset(drive_dir), ExtractionConfig(auto_method="drive"), report=rep)
+    assert rep.threshold_auto and 0.2 < rep.threshold < 0.75  # asphalt ~0.1, paint ~0.8
+    assert np.mean(paint_mask(cloud.xyz)) > 0.999
 
 
 def test_fixed_threshold_when_auto_is_off(drive_dir: Path) -> None:

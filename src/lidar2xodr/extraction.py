@@ -74,12 +74,13 @@ def fit_ground_plane(
 
     `ransac_iterations` triples are drawn together; each is scored by its inliers among
     `ransac_sample_points` random points; the best is refined twice by least squares (the
-    smallest eigenvector of the inliers' scatter) on its inliers among all points. With
-    `max_offset` (vehicle frame: the origin is on the road) triples are drawn from points within
-    that height of the origin and planes passing farther from it are rejected: on a motorway
-    with embankments, guard rails and vegetation only a fifth of the low points are road, and
-    unconstrained hypotheses then often settle on a shoulder or a slope. None when fewer than 3
-    points or no hypothesis is level enough.
+    smallest eigenvector of the inliers' scatter) on its inliers among up to 4 x
+    `ransac_sample_points` random points. With `max_offset` (vehicle frame: the origin is on the
+    road) triples are drawn from, and scored on, the points within that height of the origin, and
+    planes passing farther from it are rejected: on a motorway with embankments, guard rails and
+    vegetation only a fifth of the low points are road, and hypotheses scored on all of them
+    often settle on a slope, or on a plane crossing road and slope. None when fewer than 3 points
+    or no hypothesis is level enough.
     """
     if len(xyz) < 3:
         return None
@@ -88,8 +89,8 @@ def fit_ground_plane(
     if max_offset is not None:
         near = xyz[np.abs(xyz[:, 2]) < max_offset]
         seeds = near if len(near) >= 3 else xyz
-    m = min(len(xyz), cfg.ransac_sample_points)
-    sample_t = (xyz[rng.integers(0, len(xyz), size=m)] if m < len(xyz) else xyz).T.copy()
+    m = min(len(seeds), cfg.ransac_sample_points)
+    sample_t = (seeds[rng.integers(0, len(seeds), size=m)] if m < len(seeds) else seeds).T.copy()
     tri = seeds[rng.integers(0, len(seeds), size=(cfg.ransac_iterations, 3))]
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     norm = np.linalg.norm(n, axis=1)
@@ -109,8 +110,10 @@ def fit_ground_plane(
     score[~ok] = -1
     best = int(np.argmax(score))
     normal, offset = n[best], float(d[best])
+    cap = 4 * cfg.ransac_sample_points
+    refine = xyz if len(xyz) <= cap else xyz[rng.integers(0, len(xyz), size=cap)]
     for _ in range(2):
-        inl = xyz[np.abs(xyz @ normal + offset) < cfg.ransac_distance_m]
+        inl = refine[np.abs(refine @ normal + offset) < cfg.ransac_distance_m]
         if len(inl) < 3:
             break
         c = inl.mean(axis=0)
@@ -184,7 +187,47 @@ def radius_outliers(xyz: np.ndarray, radius: float, min_neighbors: int) -> np.nd
     return np.isfinite(dist[:, 0])
 
 
-_CELL_TABLE = 1 << 15
+def ground_heights(
+    pts: np.ndarray, r: np.ndarray, plane: tuple[np.ndarray, float], cfg: ExtractionConfig
+) -> np.ndarray:
+    """Height of every point above the local ground: piecewise planes over range rings.
+
+    Within `ransac_range_m` the scan's plane. Beyond it `ground_rings` rings, each twice as wide as
+    the one before (40-80 m, 80-160 m, 160 m and more with the defaults), get their own plane: a
+    least-squares refit, twice, of the ring's points within `ransac_distance_m` of the plane
+    before it, starting from the points within `ground_ring_window_m` of it; a refit that tilts by
+    more than `ransac_max_tilt_deg` from the plane before it, or rests on fewer than 30 points,
+    keeps that plane. One plane to 200 m misses crests, sags and banked curves by decimetres, so
+    far paint fell out of the road band and far embankments fell in.
+    """
+    n, d = plane
+    h = pts @ n + d
+    cos_tilt = np.cos(np.radians(cfg.ransac_max_tilt_deg))
+    lo = cfg.ransac_range_m
+    for k in range(cfg.ground_rings):
+        beyond = r >= lo
+        if not beyond.any():
+            break
+        ring = beyond if k == cfg.ground_rings - 1 else beyond & (r < 2.0 * lo)
+        q = pts[ring & (np.abs(h) < cfg.ground_ring_window_m)]
+        tol = cfg.ground_ring_window_m
+        for _ in range(2):
+            inl = q[np.abs(q @ n + d) < tol]
+            if len(inl) < 30:
+                break
+            c = inl.mean(axis=0)
+            _, vec = np.linalg.eigh(inl.T @ inl / len(inl) - np.outer(c, c))
+            cand = vec[:, 0] if vec[2, 0] >= 0 else -vec[:, 0]
+            if cand @ n < cos_tilt:
+                break
+            n, d = cand, float(-cand @ c)
+            tol = cfg.ransac_distance_m
+        h[beyond] = pts[beyond] @ n + d
+        lo *= 2.0
+    return h
+
+
+_CELL_BITS = 16
 _BAND_M = 10.0
 _BAND_QUANTILE = 0.25
 _LEVELS = 256
@@ -193,12 +236,14 @@ _LEVELS = 256
 def cell_samples(xy: np.ndarray, cell_m: float) -> np.ndarray:
     """Indices of at most one point per `cell_m` grid cell: a density-capped sample of the surface.
 
-    Cells are hashed into a fixed table (O(n), no sort); cells that share a slot give it one
-    sample between them, which only thins the sample where the surface is densely sampled.
+    Cells are hashed (Fibonacci hashing of the packed cell index) into a table of 2^16 slots: O(n),
+    no sort. Cells that share a slot give it one sample between them, which only thins the sample
+    (by ~5 % at the 5-8k occupied cells of a scan's road band).
     """
     ij = np.floor(xy * (1.0 / cell_m)).astype(np.int64)
-    slot = ((ij[:, 0] * 73856093) ^ (ij[:, 1] * 19349663)) & (_CELL_TABLE - 1)
-    table = np.full(_CELL_TABLE, -1, dtype=np.int32)
+    key = ((ij[:, 0] << 32) + (ij[:, 1] & 0xFFFFFFFF)).view(np.uint64)
+    slot = ((key * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(64 - _CELL_BITS)).astype(np.int64)
+    table = np.full(1 << _CELL_BITS, -1, dtype=np.int32)
     table[slot] = np.arange(len(xy), dtype=np.int32)
     return table[table >= 0]
 
@@ -222,40 +267,44 @@ def _preselect(intensity: np.ndarray, r: np.ndarray, min_contrast: float) -> np.
 def local_paint_mask(
     xyz: np.ndarray, intensity: np.ndarray, height: np.ndarray, r: np.ndarray, cfg: ExtractionConfig
 ) -> tuple[np.ndarray, float | None]:
-    """Mask of paint among one scan's road-band points, and the median local threshold applied.
+    """Mask of paint among one scan's road-band points, and the median local threshold it passed.
 
     Paint is a bright outlier of the road surface around it: a point is paint when its intensity
     is at least max(`local_contrast_k` robust sigmas, `local_min_contrast`) above the median of
-    its `local_neighbors` nearest surface samples (one per `local_cell_m` cell, xy distance), those
-    samples lie within `local_max_radius_m`, and their heights above the ground plane spread by at
-    most `local_max_roughness_m` (robust sigma). The reference is local, so intensity falling
-    with range, lasers of one sensor calibrated differently (Pandar64) and worn or wet asphalt
-    need no per-sensor model; a bright, rough shoulder (grass, gravel: 0.3..0.5 on the aiMotive
-    drive, brighter than its faint dashes) is not paint because its surroundings are as bright and
-    not flat.
+    its `local_neighbors` nearest surface samples (one per `local_cell_m` cell, xy distance) and
+    their heights above the ground spread by at most `local_max_roughness_m` (robust sigma). The
+    reference is local, so intensity falling with range, lasers of one sensor calibrated
+    differently (Pandar64) and worn or wet asphalt need no per-sensor model; a bright, rough
+    shoulder (grass, gravel: 0.3..0.5 on the aiMotive drive, brighter than its faint dashes) is
+    not paint because its surroundings are as bright and not flat. A point whose samples reach
+    farther than `local_max_radius_m` has no road around it to compare with (far range, where
+    dark asphalt no longer returns and only paint does): it is judged by the fixed
+    `reflectivity_threshold` (paper: 50 %), as is every point of a scan too sparse to sample.
     """
-    out = np.zeros(len(xyz), dtype=bool)
     k = cfg.local_neighbors
-    if len(xyz) <= k:
-        return out, None
-    idx = np.flatnonzero(_preselect(intensity, r, cfg.local_min_contrast))
-    if len(idx) == 0:
-        return out, None
+    fixed = intensity >= cfg.reflectivity_threshold
     reps = cell_samples(xyz[:, :2], cfg.local_cell_m)
     if len(reps) < k:
+        return fixed, None
+    out = np.zeros(len(xyz), dtype=bool)
+    idx = np.flatnonzero(_preselect(intensity, r, cfg.local_min_contrast) | fixed)
+    if len(idx) == 0:
         return out, None
-    dist, nn = cKDTree(xyz[reps, :2]).query(xyz[idx, :2], k=k)
+    tree = cKDTree(xyz[reps, :2], balanced_tree=False, compact_nodes=False)
+    dist, nn = tree.query(xyz[idx, :2], k=k)
     nn = reps[nn]
-    around = intensity[nn]
-    med = np.median(around, axis=1)
-    sigma = 1.4826 * np.median(np.abs(around - med[:, None]), axis=1)
-    thr = med + np.maximum(cfg.local_contrast_k * sigma, cfg.local_min_contrast)
-    hs = height[nn]
-    hmed = np.median(hs, axis=1)
-    rough = 1.4826 * np.median(np.abs(hs - hmed[:, None]), axis=1)
-    ok = (intensity[idx] >= thr) & (dist[:, -1] <= cfg.local_max_radius_m) & (rough <= cfg.local_max_roughness_m)
+    around = np.sort(np.stack([intensity[nn], height[nn]]), axis=2)
+    lo, hi = (k - 1) // 2, k // 2
+    med = 0.5 * (around[:, :, lo] + around[:, :, hi])
+    dev = np.sort(np.abs(around - med[:, :, None]), axis=2)
+    spread = 1.4826 * 0.5 * (dev[:, :, lo] + dev[:, :, hi])
+    thr = med[0] + np.maximum(cfg.local_contrast_k * spread[0], cfg.local_min_contrast)
+    rough = spread[1]
+    judged = dist[:, -1] <= cfg.local_max_radius_m
+    ok = np.where(judged, (intensity[idx] >= thr) & (rough <= cfg.local_max_roughness_m),
+                  intensity[idx] >= cfg.reflectivity_threshold)
     out[idx[ok]] = True
-    return out, float(np.median(thr))
+    return out, float(np.median(thr[ok & judged])) if np.any(ok & judged) else None
 
 
 @dataclass
@@ -305,7 +354,7 @@ def filter_scan(scan: Scan, cfg: ExtractionConfig, mount_z: float, max_range: fl
     if plane is None:
         plane = (np.array([0.0, 0.0, 1.0]), 0.0)
     n, d = plane
-    h = pts @ n + d
+    h = ground_heights(pts, r, plane, cfg)
     band = (h <= cfg.ground_margin_m) & (h >= -cfg.ground_below_m)
     sel = idx[band]
     inten = scan.intensity[sel]
@@ -416,7 +465,7 @@ def _filtered(dataset: Dataset, cfg: ExtractionConfig, state: dict, odometry: bo
     from concurrent.futures import ProcessPoolExecutor
 
     window: deque = deque()
-    with ProcessPoolExecutor(max_workers=cfg.workers, mp_context=mp.get_context("forkserver")) as pool:
+    with ProcessPoolExecutor(max_workers=cfg.workers, mp_context=mp.get_context("fork")) as pool:
         for scan in dataset:
             window.append(pool.submit(filter_scan, scan, cfg, mount_z, max_range, state["threshold"], odometry))
             if len(window) >= 2 * cfg.workers:
