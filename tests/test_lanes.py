@@ -424,3 +424,23 @@ def test_divider_survives_lanes_json_and_old_files_load(tmp_path: Path) -> None:
     (tmp_path / "bad.json").write_text(json.dumps(data))
     with pytest.raises(InputError, match="divider_id"):
         load_lanes(tmp_path / "bad.json")
+
+
+def test_opposite_carriageway_without_its_edge_line_is_not_exported() -> None:
+    road = _two_way(seed=34)
+    divider_t = road.lines[0].offset
+    edge = dataclasses.replace(road.lines[0], offset=divider_t + 7.0)
+    far = road.line_xy(edge, np.arange(-50.0, road.s[-1] + 50.0, 0.5))
+    keep = cKDTree(far).query(road.cloud.xyz[:, :2])[0] > 1.0
+    c = road.cloud
+    road.cloud = dataclasses.replace(c, xyz=c.xyz[keep], intensity=c.intensity[keep], scan_index=c.scan_index[keep],
+                                     time=c.time[keep])
+    model = _build(road)
+    assert all(sec.divider_id is None and len(sec.boundary_ids) == 4 for sec in model.sections), \
+        "only the ego's 3 lanes: the far side ends in a broken line"
+    pts = road.line_xy(road.lines[0], np.arange(20.0, road.s[-1] - 20.0, 1.0))
+    left = {sec.boundary_ids[0] for sec in model.sections}
+    assert len(left) == 1
+    d = np.min([polyline_distance(pts, p) for p in model_lines(model)[left.pop()]], axis=0)
+    assert np.sqrt(np.mean(d**2)) < 0.05, "lane 0 stays on the divider"
+    assert any("seen only partly" in w for w in model.warnings)
