@@ -47,7 +47,9 @@ Method and the decisions the paper leaves open (parameters in `LanesConfig`):
   noise (Gaussian) with two quantile ranges.
 - Two directions separated only by paint (LaneSection.divider_id): a solid line with lanes on
   both sides over at least `divider_min_length_m`, never crossed by the ego and with the ego on
-  the side of its travel direction under right-hand traffic (see `_mark_dividers`). The
+  the side of its travel direction under right-hand traffic (see `_mark_dividers`); a broken
+  line only when the ego drove both ways beside it. The opposite lanes are exported only where
+  their outermost line is a solid edge line (else only the ego's direction, with a warning). The
   trajectory only tells the side; it never connects markings or counts lanes. Carriageways split
   by a physical median (above) keep only the ego's one and get no divider.
 - Boundary ids run left to right by median offset; `Candidate.superline` is that id (-1 for
@@ -1236,7 +1238,10 @@ def _mark_dividers(model: LaneModel, ego: _EgoTrack | None, cfg: LanesConfig) ->
     together, and every trajectory sample beside it lies on the side of its own travel direction
     (right of it while moving along s, left while moving against s), over at least
     `divider_min_length_m` of stations, up to `divider_max_wrong_side_m` of stations (projection
-    noise where a U-turn ends the drive): the ego never crossed it. A solid line inside one
+    noise where a U-turn ends the drive): the ego never crossed it. A broken (or other non-solid)
+    centre line qualifies only when the ego drove both ways beside it, each over
+    `divider_min_length_m` (along s right of it, against s left of it): a one-way carriageway is
+    never driven against s. A solid line inside one
     carriageway (an exit lane's, a lane drop's) is short, or crossed, or has the ego on its wrong
     side, so it is no divider. Without a trajectory no divider is set (the side cannot be known);
     where several lines qualify, the one nearest the ego bounds its carriageway. Sections where the
@@ -1249,8 +1254,7 @@ def _mark_dividers(model: LaneModel, ego: _EgoTrack | None, cfg: LanesConfig) ->
     inner: dict[int, list[int]] = {}
     for j, sec in enumerate(model.sections):
         for bid in sec.boundary_ids[1:-1]:
-            if by_id[bid].mark_type == "solid":
-                inner.setdefault(bid, []).append(j)
+            inner.setdefault(bid, []).append(j)
     ok = (ego.k >= 0) & (ego.k < len(model.s))
     k, t_e, direction = ego.k[ok], ego.t[ok], ego.direction[ok]
     closeness: dict[int, float] = {}
@@ -1267,6 +1271,9 @@ def _mark_dividers(model: LaneModel, ego: _EgoTrack | None, cfg: LanesConfig) ->
         consistent = np.where(direction[beside] > 0, right_side, ~right_side)
         covered = len(np.unique(k[beside])) * step
         wrong = len(np.unique(k[beside][~consistent])) * step
+        both = [len(np.unique(k[beside][consistent & (direction[beside] == sign)])) * step for sign in (1, -1)]
+        if by_id[bid].mark_type != "solid" and min(both) < cfg.divider_min_length_m:
+            continue
         if wrong <= cfg.divider_max_wrong_side_m and covered >= cfg.divider_min_length_m:
             closeness[bid] = float(np.median(np.abs(t_e[beside] - t_b[beside])))
             along[bid] = bool(np.median(direction[beside]) > 0)
