@@ -6,10 +6,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_extraction import DASH_LEN, DASH_PERIOD, SOLID_Y, T0, ListDataset, make_drive
+from test_extraction import DASH_LEN, DASH_PERIOD, SOLID_Y, T0, ListDataset, aimotive_cloud, fit_edge_line, make_drive
 
 from lidar2xodr.config import ExtractionConfig
-from lidar2xodr.datasets import open_dataset
 from lidar2xodr.extraction import ExtractionReport, extract_markings
 from lidar2xodr.odometry import deskew, se3_exp, se3_log
 
@@ -69,37 +68,6 @@ def test_lidar_odometry_is_deterministic(lidar_run: tuple) -> None:
     assert np.array_equal(again.xyz, cloud.xyz)
 
 
-def fit_edge_line(xyz: np.ndarray, intensity: np.ndarray, band: float = 0.3, seed_x: tuple = (0.0, 20.0),
-                  y_range: tuple = (0.5, 4.0)) -> dict:
-    """Track the brightest line left of the start along x and fit y(x) with a cubic.
-
-    Seeds on the intensity-weighted histogram peak of bright points left of the vehicle within
-    `seed_x`, then grows the window 15 m at a time, refitting (degree 1..3) on points within
-    `band` of the current fit.
-    """
-    x, y = xyz[:, 0], xyz[:, 1]
-    seed = (x > seed_x[0]) & (x < seed_x[1]) & (y > y_range[0]) & (y < y_range[1])
-    hist, edges = np.histogram(y[seed], bins=np.arange(y_range[0], y_range[1] + 1e-9, 0.1), weights=intensity[seed])
-    y0 = edges[int(np.argmax(hist))] + 0.05
-    lo, hi = seed_x
-    coef = np.array([0.0, y0])
-    while True:
-        deg = 1 if hi - lo < 40 else (2 if hi - lo < 80 else 3)
-        win = (x > lo - 15) & (x < hi + 15) & (np.abs(y - np.polyval(coef, x)) < band)
-        coef = np.polyfit(x[win], y[win], deg)
-        new_lo, new_hi = max(lo - 15, x[win].min()), min(hi + 15, x[win].max())
-        if new_lo >= lo - 1.0 and new_hi <= hi + 1.0:
-            break
-        lo, hi = min(lo, new_lo), max(hi, new_hi)
-    sel = (x > lo) & (x < hi) & (np.abs(y - np.polyval(coef, x)) < band)
-    coef = np.polyfit(x[sel], y[sel], 3)
-    res = y[sel] - np.polyval(coef, x[sel])
-    bins = np.floor((x[sel] - lo) / 5.0).astype(int)
-    medians = np.array([np.median(res[bins == b]) for b in np.unique(bins) if np.sum(bins == b) >= 10])
-    return {"y0": y0, "lo": float(x[sel].min()), "hi": float(x[sel].max()), "n": int(sel.sum()),
-            "rms": float(np.sqrt(np.mean(res**2))), "max_bin": float(np.max(np.abs(medians))), "bins": len(medians)}
-
-
 @pytest.mark.slow
 def test_aimotive_motorway_edge_line_is_straight(shared_data: Path) -> None:
     """Real drive without poses: 50 Pandar64 revolutions at ~30 m/s, accumulated with LiDAR odometry.
@@ -107,9 +75,7 @@ def test_aimotive_motorway_edge_line_is_straight(shared_data: Path) -> None:
     The solid left edge line, accumulated over all 50 scans, must lie within 0.10 m of a smooth
     line along its whole length: a wrong speed doubles dashes, a yaw error bends or fans the line.
     """
-    rep = ExtractionReport()
-    cloud = extract_markings(open_dataset(shared_data / "lidar" / "aimotive_highway_sample"), ExtractionConfig(),
-                             report=rep)
+    cloud, rep = aimotive_cloud(shared_data / "lidar" / "aimotive_highway_sample")
     assert rep.odometry == "lidar" and rep.scans_used == 50
     assert 25.0 < rep.start_speed_mps < 35.0
     assert rep.drive_length_m > 60.0
