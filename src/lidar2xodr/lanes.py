@@ -1241,7 +1241,8 @@ def _mark_dividers(model: LaneModel, ego: _EgoTrack | None, cfg: LanesConfig) ->
     noise where a U-turn ends the drive): the ego never crossed it. A broken (or other non-solid)
     centre line qualifies only when the ego drove both ways beside it, each over
     `divider_min_length_m` (along s right of it, against s left of it): a one-way carriageway is
-    never driven against s. A solid line inside one
+    never driven against s; a solid candidate wins over broken ones, and several broken ones alone
+    (every line between the two tracks qualifies) are ambiguous, so none is set. A solid line inside one
     carriageway (an exit lane's, a lane drop's) is short, or crossed, or has the ego on its wrong
     side, so it is no divider. Without a trajectory no divider is set (the side cannot be known);
     where several lines qualify, the one nearest the ego bounds its carriageway. Sections where the
@@ -1279,6 +1280,9 @@ def _mark_dividers(model: LaneModel, ego: _EgoTrack | None, cfg: LanesConfig) ->
             along[bid] = bool(np.median(direction[beside]) > 0)
     for j, sec in enumerate(model.sections):
         found = [bid for bid in closeness if j in inner[bid]]
+        solid = [bid for bid in found if by_id[bid].mark_type == "solid"]
+        if solid or len(found) > 1:
+            found = solid
         sec.divider_id = min(found, key=lambda b: (closeness[b], b)) if found else None
     _drop_partial_opposite(model, along)
 
