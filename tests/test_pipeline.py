@@ -94,3 +94,17 @@ def test_cli_compare_json_keys(demo_drive: tuple[Path, Path], tmp_path: Path) ->
         assert m[group]["rmse_m"] == 0.0
     assert m["lane_count_agreement"] == 1.0 and m["coverage"] == pytest.approx(1.0, abs=0.01)
     assert m["lane_width"]["bias_m"] == 0.0
+
+
+def test_stages_rerun_from_intermediates_give_the_same_map(demo_drive: tuple[Path, Path], tmp_path: Path) -> None:
+    """--keep-intermediate keeps markings.ply and lanes.json; `lanes` and `export` re-run the later stages."""
+    _, drive = demo_drive
+    keep = tmp_path / "int"
+    BuildPipeline(drive, tmp_path / "built.xodr", keep_intermediate=keep).run()
+    cli = [sys.executable, "-m", "lidar2xodr.cli"]
+    subprocess.run([*cli, "lanes", str(keep / "markings.ply"), "-o", str(tmp_path / "lanes.json")], check=True,
+                   capture_output=True)
+    proc = subprocess.run([*cli, "export", str(tmp_path / "lanes.json"), "-o", str(tmp_path / "rerun.xodr"),
+                           "--markings", str(keep / "markings.ply")], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / "rerun.xodr").read_bytes() == (tmp_path / "built.xodr").read_bytes()
