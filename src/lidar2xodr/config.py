@@ -64,13 +64,15 @@ class ExtractionConfig(_Section):
                                     "the median of its surroundings ...")
     local_min_contrast: float = Field(0.08, description="ours: ... and at least this much brighter (0..1 scale)")
     local_max_radius_m: float = Field(3.0, description="ours: a point whose surface samples reach farther than "
-                                      "this has too little road around it to be judged, and is dropped")
+                                      "this has no road around it to compare with (far range, where only paint returns): the "
+                                      "fixed reflectivity_threshold judges it")
     local_max_roughness_m: float = Field(0.02, description="ours: robust height spread (MAD) of the surroundings "
                                          "above which they are not road surface (vegetation, gravel, kerbs)")
     lateral_crop_m: float | None = Field(20.0, description="ours: points farther than this left or right of the "
                                          "vehicle are dropped (embankments, other roads); None = no crop")
     ground_prior_m: float = Field(0.5, description="ours: the ground plane passes within this height of the "
-                                  "vehicle origin (on the road by definition of the vehicle frame)")
+                                  "vehicle origin (on the road by definition of the vehicle frame); RANSAC draws "
+                                  "and scores its hypotheses on points this close to z = 0")
     ground_rings: int = Field(3, ge=0, description="ours: range rings beyond ransac_range_m with their own "
                               "ground plane, each twice as wide as the one before; 0 = one plane per scan (paper)")
     ground_ring_window_m: float = Field(0.5, description="ours: a ring's plane is refitted from its points this "
