@@ -64,8 +64,8 @@ class ExtractionConfig(_Section):
                                     "the median of its surroundings ...")
     local_min_contrast: float = Field(0.08, description="ours: ... and at least this much brighter (0..1 scale)")
     local_max_radius_m: float = Field(3.0, description="ours: a point whose surface samples reach farther than "
-                                      "this has no road around it to compare with (far range, where only paint returns): the "
-                                      "fixed reflectivity_threshold judges it")
+                                      "this has no road around it to compare with (far range, where only paint "
+                                      "returns): the fixed reflectivity_threshold judges it")
     local_max_roughness_m: float = Field(0.02, description="ours: robust height spread (MAD) of the surroundings "
                                          "above which they are not road surface (vegetation, gravel, kerbs)")
     lateral_crop_m: float | None = Field(20.0, description="ours: points farther than this left or right of the "
