@@ -51,6 +51,13 @@ def test_build_check_compare(demo_drive: tuple[Path, Path], tmp_path: Path) -> N
     assert (tmp_path / "map.xosc").exists()
 
 
+def test_build_into_a_new_folder(demo_drive: tuple[Path, Path], tmp_path: Path) -> None:
+    _, drive = demo_drive
+    out = tmp_path / "new" / "deeper" / "map.xodr"
+    BuildPipeline(drive, out).run()
+    assert out.exists() and [p.name for p in out.parent.iterdir()] == ["map.xodr"]
+
+
 def test_same_drive_same_bytes(demo_drive: tuple[Path, Path], tmp_path: Path) -> None:
     _, drive = demo_drive
     a, b = tmp_path / "a.xodr", tmp_path / "b.xodr"

@@ -21,7 +21,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from lidar2xodr.config import Config
 from lidar2xodr.data import LaneModel, MarkingCloud
-from lidar2xodr.errors import InputError
+from lidar2xodr.errors import InputError, OutputError
 
 
 @dataclass
@@ -110,6 +110,10 @@ class BuildPipeline:
 
         cloud = self.extract()
         model = self.lanes(cloud)
+        try:
+            self.out.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise OutputError(self.out, f"cannot create the output folder: {exc.strerror or exc}") from None
         with tempfile.TemporaryDirectory(prefix=".lidar2xodr-", dir=self.out.parent) as tmp:
             tmp_map = Path(tmp) / self.out.name
             with self._stage("export"):
@@ -124,7 +128,6 @@ class BuildPipeline:
                 )
             if self.keep:
                 self._keep(cloud, model)
-            self.out.parent.mkdir(parents=True, exist_ok=True)
             shutil.move(str(tmp_map), self.out)
         result = BuildResult(map_path=self.out, timings=self.timings, check=verdict, warnings=list(model.warnings))
         result.summary = {
