@@ -77,7 +77,9 @@ class ExtractionConfig(_Section):
                               "ground plane, each twice as wide as the one before; 0 = one plane per scan (paper)")
     ground_ring_window_m: float = Field(0.5, description="ours: a ring's plane is refitted from its points this "
                                         "close to the plane of the ring before")
-    workers: int = Field(1, ge=1, description="ours: processes filtering scans in parallel (same result)")
+    workers: int | Literal["auto"] = Field(
+        "auto", description="ours: processes reading and filtering scans in parallel (same bytes as 1); "
+        "auto = the CPUs this process may use, at most 8")
 
 
 class MarkingsConfig(_Section):
@@ -107,6 +109,10 @@ class MarkingsConfig(_Section):
                                          "combined")
     max_turn_deg: float = Field(10.0, description="ours: a found cluster whose direction turns the search by more "
                                 "than this keeps the previous direction (stray blobs beside a line)")
+    max_lateral_offset_m: float = Field(0.8, description="ours: SearchMark and Combine reject a target farther "
+                                        "than this beside the line extrapolated from the recent centres (and, in "
+                                        "Combine, the source beside the target's extrapolation): about a third of "
+                                        "the minimum lane width, so a link never crosses to the next lane line")
     seed: int = Field(0, description="seed of the line RANSAC")
 
 

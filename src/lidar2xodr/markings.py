@@ -305,19 +305,31 @@ def _next_center(
     steps: np.ndarray,
     cfg: MarkingsConfig,
 ) -> tuple[int, float]:
-    """The unvisited centre nearest to c + v * d in the first step d that finds one (-1 if none)."""
+    """The unvisited centre nearest to c + v * d in the first step d that finds one (-1 if none).
+
+    Once the chain's bases span a search step, a hit must also lie within `max_lateral_offset_m`
+    of the line extrapolated from them: one dash turned by a few degrees steers the ball 3 m aside
+    at 20 m, onto the neighbouring lane line.
+    """
     cur = centers[bases[-1]]
     slope = 0.0
     if len(bases) >= 2:
         prev = centers[bases[-2]]
         slope = (cur[2] - prev[2]) / max(float(np.linalg.norm(cur[:2] - prev[:2])), 1e-3)
     expected = cur[:2] + steps[:, None] * v
+    line = centers[bases, :2]
+    gated = len(bases) >= 2 and float(np.linalg.norm(line[-1] - line[0])) >= cfg.search_step_m
+    if gated:
+        out, pred = _extrapolate(line, v, steps)
     for k, hits in enumerate(tree.query_ball_point(expected, cfg.search_radius_m)):
         if not hits:
             continue
         hits = np.asarray(hits)
         hits = hits[~visited[hits]]
         hits = hits[np.abs(centers[hits, 2] - cur[2] - slope * steps[k]) <= cfg.search_z_tolerance_m]
+        if gated:
+            rel = centers[hits, :2] - pred[k]
+            hits = hits[np.abs(rel[:, 0] * out[1] - rel[:, 1] * out[0]) <= cfg.max_lateral_offset_m]
         if len(hits):
             best = hits[np.argmin(np.linalg.norm(centers[hits, :2] - expected[k], axis=1))]
             return int(best), float(steps[k])
@@ -360,7 +372,7 @@ class _Terminal:
 
 def combine(chains: list[np.ndarray], clusters: Clusters, cfg: MarkingsConfig) -> list[np.ndarray]:
     """Merge chains end to start (search of `combine_search_m`) and chains lying on others, until stable."""
-    chains = [_dist_sort(c, clusters.centers) for c in chains]
+    chains = [_dist_sort(c, clusters.centers) for c in _prune_all(chains, clusters, cfg)]
     for _ in range(20):
         linked = _link_terminals(chains, clusters, cfg)
         merged = _absorb(linked, clusters, cfg)
@@ -368,9 +380,66 @@ def combine(chains: list[np.ndarray], clusters: Clusters, cfg: MarkingsConfig) -
         chains = merged
         if not changed:
             break
-    chains = [_dist_sort(c, clusters.centers) for c in chains]
+    chains = [_dist_sort(c, clusters.centers) for c in _prune_all(chains, clusters, cfg)]
     first = np.array([np.linalg.norm(clusters.centers[c[0], :2]) for c in chains])
     return [chains[i] for i in np.argsort(first, kind="stable")]
+
+
+def _prune_all(chains: list[np.ndarray], clusters: Clusters, cfg: MarkingsConfig) -> list[np.ndarray]:
+    """`_prune` on every chain; what it takes out becomes chains of its own."""
+    strong = _elongated(clusters, cfg)
+    out: list[np.ndarray] = []
+    for chain in chains:
+        out.extend(_prune(chain, clusters, strong, cfg))
+    return out
+
+
+def _prune(chain: np.ndarray, clusters: Clusters, strong: np.ndarray, cfg: MarkingsConfig) -> list[np.ndarray]:
+    """Split a chain where it leaves its own line; the pieces in chain order, off-line blobs alone.
+
+    A blob (not elongated) between two elongated clusters of the chain that lies more than
+    `max_lateral_offset_m` beside the segment joining them is taken out. A step whose direction
+    deviates by more than `combine_max_angle_deg` from the chain's smoothed direction (the
+    elongated clusters' directions nearest before and after it; the chord of a chain of blobs)
+    and that moves more than `max_lateral_offset_m` sideways is a hop to another line: the chain
+    is cut there.
+    """
+    if len(chain) < 2:
+        return [chain]
+    xy = clusters.centers[chain, :2]
+    idx = np.arange(len(chain))
+    sidx = idx[strong[chain]]
+    alone: list[np.ndarray] = []
+    if len(sidx) >= 2:
+        nxt = np.searchsorted(sidx, idx, side="right")
+        inner = ~strong[chain] & (nxt > 0) & (nxt < len(sidx))
+        a = sidx[np.clip(nxt - 1, 0, len(sidx) - 1)]
+        b = sidx[np.clip(nxt, 0, len(sidx) - 1)]
+        ab = xy[b] - xy[a]
+        ln = np.maximum(np.linalg.norm(ab, axis=1), 1e-9)
+        rel = xy - xy[a]
+        off = inner & (np.abs(rel[:, 0] * ab[:, 1] - rel[:, 1] * ab[:, 0]) / ln > cfg.max_lateral_offset_m)
+        alone = [chain[i : i + 1] for i in np.flatnonzero(off)]
+        chain, xy = chain[~off], xy[~off]
+        if len(chain) < 2:
+            return [chain, *alone]
+    seg = np.diff(xy, axis=0)
+    d = _chain_dirs(chain, clusters)
+    sidx = np.flatnonzero(strong[chain])
+    if len(sidx):
+        j = np.arange(len(seg))
+        before = sidx[np.clip(np.searchsorted(sidx, j, side="right") - 1, 0, len(sidx) - 1)]
+        after = sidx[np.clip(np.searchsorted(sidx, j + 1, side="left"), 0, len(sidx) - 1)]
+        ref = d[before] + d[after]
+    else:
+        ref = np.repeat((xy[-1] - xy[0])[None], len(seg), axis=0)
+    ref /= np.maximum(np.linalg.norm(ref, axis=1), 1e-9)[:, None]
+    lateral = np.abs(seg[:, 0] * ref[:, 1] - seg[:, 1] * ref[:, 0])
+    along = np.abs(np.einsum("ij,ij->i", seg, ref))
+    cos_max = np.cos(np.radians(cfg.combine_max_angle_deg))
+    hop = (lateral > cfg.max_lateral_offset_m) & (along < cos_max * np.hypot(along, lateral))
+    cuts = np.flatnonzero(hop) + 1
+    return [*np.split(chain, cuts), *alone]
 
 
 def _dist_sort(chain: np.ndarray, centers: np.ndarray) -> np.ndarray:
@@ -489,6 +558,7 @@ def _link_terminals(chains: list[np.ndarray], clusters: Clusters, cfg: MarkingsC
             hits = hits[
                 (gap @ term.out[a] >= cos_max) & (np.einsum("ij,ij->i", gap, -term.out[hits]) >= cos_max)
             ]
+            hits = hits[_both_on_line(term, a, hits, k, dists, cfg.max_lateral_offset_m)]
             if len(hits):
                 off = np.linalg.norm(term.point[hits, :2] - term.predicted[a, k], axis=1)
                 proposals.append((float(dists[k]), float(off.min()), a, int(hits[np.argmin(off)])))
@@ -516,6 +586,25 @@ def _link_terminals(chains: list[np.ndarray], clusters: Clusters, cfg: MarkingsC
             c, forward = int(nxt // 2), nxt % 2 == 0
         out.append(np.concatenate(parts))
     return out
+
+
+def _both_on_line(
+    term: _Terminal, a: int, hits: np.ndarray, k: int, dists: np.ndarray, tol: float
+) -> np.ndarray:
+    """Mask of ends `hits` within `tol` beside the extrapolation of end `a` (at step k) and with `a`
+    within `tol` beside each hit's own extrapolation (at the step nearest to their distance).
+
+    Both lines must agree: an end extrapolated with a slight slope reaches the start of the
+    neighbouring lane line, which, extrapolated back, passes a lane away from it.
+    """
+    rel = term.point[hits, :2] - term.predicted[a, k]
+    ua = term.out[a]
+    ok = np.abs(rel[:, 0] * ua[1] - rel[:, 1] * ua[0]) <= tol
+    gap = np.linalg.norm(term.point[hits, :2] - term.point[a, :2], axis=1)
+    kb = np.clip(np.rint(gap / dists[0]).astype(np.int64) - 1, 0, len(dists) - 1)
+    back = term.point[a, :2] - term.predicted[hits, kb]
+    ub = term.out[hits]
+    return ok & (np.abs(back[:, 0] * ub[:, 1] - back[:, 1] * ub[:, 0]) <= tol)
 
 
 def _absorb(chains: list[np.ndarray], clusters: Clusters, cfg: MarkingsConfig) -> list[np.ndarray]:
