@@ -355,6 +355,36 @@ def test_ramp_leaving_the_road_makes_no_lane() -> None:
     assert any("ignored" in w for w in model.warnings)
 
 
+def test_one_candidate_crossing_to_the_next_line_is_dropped() -> None:
+    """Combine once linked the end of one lane line to the start of the next (12 m ahead, 3.7 m
+    aside): the crossing chain holds the first half of one line and the second half of the other.
+    The crossing step must be dropped, not merge two lines or bend the road axis."""
+    road = make_road([straight(400.0)], lane_widths=(3.75, 3.75), gnss_noise=0.05, seed=21)
+    cands = find_candidates(road.cloud.xyz, MCFG)
+    long = sorted((c for c in cands if len(c.centers) >= 10), key=lambda c: -float(np.median(c.centers[:, 1])))
+    assert len(long) == 3
+    mid, right = long[1], long[2]
+    rx, mx = right.centers[:, 0], mid.centers[:, 0]
+
+    def part(c: Candidate, m: np.ndarray, i: int) -> Candidate:
+        return Candidate(i, c.centers[m], c.directions[m], c.cluster_ids[m])
+
+    a, b = rx < 185.0, mx > 195.0
+    crossing = Candidate(
+        900,
+        np.vstack([right.centers[a], mid.centers[b]]),
+        np.vstack([right.directions[a], mid.directions[b]]),
+        np.arange(a.sum() + b.sum()),
+    )
+    assert np.ptp(crossing.centers[:, 1]) > 3.0
+    others = [c for c in cands if c is not mid and c is not right]
+    model = build_lane_model(road.cloud, [*others, crossing, part(right, ~a, 901), part(mid, ~b, 902)], LCFG)
+    assert {len(sec.boundary_ids) - 1 for sec in model.sections} == {2}
+    res = evaluate(model, road)
+    assert res["rmse"] < 0.05 and res["lane_count_ok"] > 0.99
+    assert abs(res["width_bias"]) < 0.05
+
+
 def test_reference_height_follows_the_markings(curved: tuple[SynthRoad, LaneModel]) -> None:
     road, model = curved
     _, k = cKDTree(road.xy).query(model.reference[:, :2])

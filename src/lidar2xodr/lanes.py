@@ -77,6 +77,7 @@ from lidar2xodr.fileio import write_text
 
 FORMAT = "lidar2xodr.lanes/1"
 _CHUNK = 20000
+_HOP_RADIUS_M = 500.0  # tightest curve a step beside another is allowed to follow (motorway minimum ~ 700 m)
 
 
 # --------------------------------------------------------------------------------------------
@@ -116,8 +117,9 @@ class Lookups:
 def split_candidates(candidates: list[Candidate], cfg: LanesConfig) -> tuple[list[Candidate], np.ndarray]:
     """Candidates cleaned for the lookups: a lone centre that kinks the line out and back (a blob
     Combine took in) is left out, and the line is cut where it still turns by more than
-    `max_intersect_angle_deg` or leaps further than `max_link_gap_m` / 8 (a line does neither; a
-    chain through junk does). Returns the pieces and the candidate index of each; pieces keep the
+    `max_intersect_angle_deg`, leaps further than `max_link_gap_m` / 8 or steps more than half
+    `min_lane_width_m` sideways to its neighbouring steps (a line does none of these; a chain
+    through junk or across to the next line does). Returns the pieces and the candidate index of each; pieces keep the
     candidate's id."""
     cos_max = math.cos(math.radians(cfg.max_intersect_angle_deg))
     pieces: list[Candidate] = []
@@ -142,7 +144,10 @@ def split_candidates(candidates: list[Candidate], cfg: LanesConfig) -> tuple[lis
         if len(ctr_k) > 2:
             cut[1:-1] = np.einsum("ij,ij->i", u[1:], u[:-1]) < cos_max
         leap = np.flatnonzero(ln > cfg.max_link_gap_m / 8.0)
-        bounds = sorted({0, len(ctr_k), *np.flatnonzero(cut).tolist(), *(leap + 1).tolist()})
+        hop = _sideways_steps(ctr_k[:, :2], 0.5 * cfg.min_lane_width_m)
+        bounds = sorted(
+            {0, len(ctr_k), *np.flatnonzero(cut).tolist(), *(leap + 1).tolist(), *(hop + 1).tolist()}
+        )
         for a, b in zip(bounds[:-1], bounds[1:], strict=True):
             sel = idx[a:b]
             pieces.append(
@@ -150,6 +155,26 @@ def split_candidates(candidates: list[Candidate], cfg: LanesConfig) -> tuple[lis
             )
             owner.append(i)
     return pieces, np.asarray(owner, dtype=np.int64)
+
+
+def _sideways_steps(xy: np.ndarray, tol: float) -> np.ndarray:
+    """Steps (index of their first centre) that move more than `tol` sideways to the direction of
+    the steps before and after them: a chain that crossed to the neighbouring lane line. Cutting
+    on both sides of the step drops it, so each part joins its own superline instead of one
+    crossing piece bending the road axis. The allowance grows as a curve of radius `_HOP_RADIUS_M`
+    would need beside a step whose neighbours are unequal (one side only at a chain's end)."""
+    if len(xy) < 3:
+        return np.zeros(0, dtype=np.int64)
+    d = np.diff(xy, axis=0)
+    u = d / np.maximum(np.linalg.norm(d, axis=1), 1e-9)[:, None]
+    ref = np.zeros_like(u)
+    ref[1:] += u[:-1]
+    ref[:-1] += u[1:]
+    ref /= np.maximum(np.linalg.norm(ref, axis=1), 1e-9)[:, None]
+    lateral = np.abs(d[:, 0] * ref[:, 1] - d[:, 1] * ref[:, 0])
+    ln = np.linalg.norm(d, axis=1)
+    near = np.maximum(np.r_[0.0, ln[:-1]], np.r_[ln[1:], 0.0])
+    return np.flatnonzero(lateral > tol + ln * (ln + near) / (2.0 * _HOP_RADIUS_M))
 
 
 def _turn_cos(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> float:
