@@ -474,3 +474,28 @@ def test_opposite_carriageway_without_its_edge_line_is_not_exported() -> None:
     d = np.min([polyline_distance(pts, p) for p in model_lines(model)[left.pop()]], axis=0)
     assert np.sqrt(np.mean(d**2)) < 0.05, "lane 0 stays on the divider"
     assert any("seen only partly" in w for w in model.warnings)
+
+
+@pytest.mark.slow
+def test_aimotive_highway_gives_two_through_lanes(shared_data: Path) -> None:
+    """Real Pandar64 drive (shared extraction, ~20 s): solid edge, dashed centre line, the short
+    dashes of an ending exit lane and its converging edge. The chains must not cross from one
+    lane line to the next, so the model holds the two through lanes, 3.2-4.0 m wide, over most
+    of the drive."""
+    from test_extraction import aimotive_cloud
+
+    cloud, _ = aimotive_cloud(shared_data / "lidar" / "aimotive_highway_sample")
+    cands = find_candidates(cloud.xyz, MCFG)
+    for c in cands:
+        xy = c.centers[:, :2] - c.centers[0, :2]
+        chord = xy[-1] / max(float(np.linalg.norm(xy[-1])), 1e-9)
+        if len(xy) >= 3:
+            assert np.max(np.abs(xy[:, 0] * chord[1] - xy[:, 1] * chord[0])) < 1.5, "a chain crosses lines"
+    model = build_lane_model(cloud, cands, LCFG)
+    assert model.s[-1] >= 60.0
+    t = np.array([b.t for b in model.boundaries], dtype=np.float64)
+    for sec in model.sections:
+        assert len(sec.boundary_ids) - 1 == 2
+    widths = -np.diff(t, axis=0)
+    ok = np.isfinite(widths) & (widths >= 3.2) & (widths <= 4.0)
+    assert widths.shape[0] == 2 and np.all(ok.mean(axis=1) > 0.9)
