@@ -35,6 +35,7 @@ from lidar2xodr.extraction import (
     local_paint_mask,
     otsu_threshold,
     radius_outliers,
+    worker_count,
 )
 from lidar2xodr.markings_io import load_markings, read_ply, save_markings, sidecars
 
@@ -476,11 +477,44 @@ def test_corrupt_scans_skipped_until_too_many(drive: Drive, tmp_path: Path) -> N
         extract_markings(open_dataset(folder), ExtractionConfig(max_bad_scan_share=0.1))
 
 
-def test_process_pool_gives_the_same_cloud(drive_dir: Path) -> None:
-    one = extract_markings(open_dataset(drive_dir), ExtractionConfig())
-    two = extract_markings(open_dataset(drive_dir), ExtractionConfig(workers=2))
-    assert np.array_equal(one.xyz, two.xyz) and np.array_equal(one.scan_index, two.scan_index)
-    assert np.array_equal(one.planes.normals_world, two.planes.normals_world)
+def _cloud_bytes(cloud: MarkingCloud) -> bytes:
+    return b"".join(np.ascontiguousarray(a).tobytes() for a in (
+        cloud.xyz, cloud.intensity, cloud.scan_index, cloud.time, cloud.planes.points_world,
+        cloud.planes.normals_world))
+
+
+@pytest.mark.parametrize("method", ["local", "drive"])
+def test_process_pool_gives_the_same_bytes(drive: Drive, tmp_path: Path, method: str) -> None:
+    folder = write_drive(drive, tmp_path / "d", nan_rows=7)
+    (folder / "scans" / "000004.pcd").write_bytes(b"VERSION 0.7\nFIELDS x y\ngarbage")
+    reps = [ExtractionReport(), ExtractionReport()]
+    one, two = (extract_markings(open_dataset(folder), ExtractionConfig(workers=w, auto_method=method), report=rep)
+                for w, rep in zip((1, 2), reps, strict=True))
+    assert _cloud_bytes(one) == _cloud_bytes(two)
+    assert [Path(n).name for n, _ in reps[1].bad_scans] == ["000004.pcd"]
+    for name in ("scans_used", "points_read", "dropped_points", "band_points", "threshold", "bad_scans"):
+        assert getattr(reps[0], name) == getattr(reps[1], name), name
+    assert reps[1].dropped_points > 0
+
+
+def test_input_errors_with_workers_are_input_errors(drive: Drive, tmp_path: Path) -> None:
+    folder = write_drive(drive, tmp_path / "d")
+    scans = sorted((folder / "scans").iterdir())
+    scans[6].write_bytes(scans[0].read_bytes())  # an old scan again: time goes backwards (parent's check)
+    with pytest.raises(InputError, match="before the previous scan"):
+        extract_markings(open_dataset(folder), ExtractionConfig(workers=2))
+    header = "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 3\nHEIGHT 1\n"
+    scans[6].write_text(header + "VIEWPOINT 0 0 0 1 0 0 0\nPOINTS 3\nDATA ascii\n1 0 0\n2 0 0\n3 0 0\n")
+    with pytest.raises(InputError, match=r"000006.pcd.*no intensity"):  # raised in a worker
+        extract_markings(open_dataset(folder), ExtractionConfig(workers=2))
+
+
+def test_auto_workers_use_the_cpus_this_process_may_use() -> None:
+    import os
+
+    assert worker_count(ExtractionConfig(workers="auto")) == min(len(os.sched_getaffinity(0)), 8)
+    assert worker_count(ExtractionConfig(workers=3)) == 3
+    assert ExtractionConfig().workers == "auto"
 
 
 def test_per_drive_threshold_is_still_available(drive_dir: Path) -> None:

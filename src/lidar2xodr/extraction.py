@@ -35,6 +35,7 @@ Decisions beyond the paper:
 
 from __future__ import annotations
 
+import os
 import time as _time
 from collections import deque
 from collections.abc import Callable, Iterator
@@ -46,7 +47,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from lidar2xodr.config import ExtractionConfig
 from lidar2xodr.data import GeoOrigin, GroundPlanes, MarkingCloud, Scan, Trajectory
-from lidar2xodr.datasets.base import Dataset
+from lidar2xodr.datasets.base import Dataset, ReadStats, ScanFileDataset
 from lidar2xodr.errors import InputError
 
 
@@ -462,30 +463,97 @@ def _mode(dataset: Dataset, cfg: ExtractionConfig) -> str:
     return "gnss"
 
 
+def worker_count(cfg: ExtractionConfig) -> int:
+    """`workers` as a number: 'auto' = the CPUs this process may use (affinity), at most 8."""
+    if cfg.workers != "auto":
+        return max(1, int(cfg.workers))
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not on Linux
+        cpus = os.cpu_count() or 1
+    return max(1, min(cpus, 8))
+
+
+_POOL_DATASET: ScanFileDataset | None = None
+
+
+def _pool_init(dataset: ScanFileDataset) -> None:
+    global _POOL_DATASET
+    _POOL_DATASET = dataset
+
+
+def _read_filter(dataset: ScanFileDataset | None, k: int, cfg: ExtractionConfig, mount_z: float, max_range: float,
+                 threshold: float | None, odometry: bool) -> tuple[int, float | None, ReadStats, object]:
+    """Read scan k and filter it, for `iter_scans`; an InputError comes back as its (where, problem)."""
+    dataset = dataset if dataset is not None else _POOL_DATASET
+    assert dataset is not None
+    try:
+        scan, stats = dataset.read_scan(k)
+        if scan is None:
+            return k, None, stats, None
+        return k, scan.stamp, stats, filter_scan(scan, cfg, mount_z, max_range, threshold, odometry)
+    except InputError as exc:
+        return k, None, ReadStats(), (exc.where, exc.problem)
+
+
 def _filtered(dataset: Dataset, cfg: ExtractionConfig, state: dict, odometry: bool) -> Iterator[ScanMarks]:
     """`filter_scan` over the drive, in recording order; with `workers` > 1 in a process pool.
 
-    The pool keeps at most 2 scans per worker in flight (memory stays flat on long drives) and
-    results come back in order, so the output is the same as with one process. `state` holds the
-    threshold known when a scan is handed out (a per-drive threshold may still be unknown).
+    With a pool (fork) each worker reads and filters whole scans (`ScanFileDataset.read_scan`),
+    so only the few marking points travel between processes; the parent reads the first readable
+    scan itself, since it fixes the reader's intensity scale (and an estimated mount) that the
+    workers inherit. At most 2 scans per worker are in flight (memory stays flat on long drives)
+    and results are taken in recording order, so the output is the same bytes as with one
+    process. `state` holds the threshold known when a scan is handed out (a per-drive threshold
+    may still be unknown). Readers of one stream (rosbag) are read in the parent and filtered in
+    the pool.
     """
     mount_z = float(dataset.sensor.mount[2, 3])
     max_range = cfg.max_range_m if cfg.max_range_m is not None else dataset.sensor.max_range_m
-    if cfg.workers <= 1:
+    workers = min(worker_count(cfg), max(1, len(dataset)))
+    if workers <= 1:
         for scan in dataset:
             yield filter_scan(scan, cfg, mount_z, max_range, state["threshold"], odometry)
         return
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
-    window: deque = deque()
-    with ProcessPoolExecutor(max_workers=cfg.workers, mp_context=mp.get_context("fork")) as pool:
-        for scan in dataset:
-            window.append(pool.submit(filter_scan, scan, cfg, mount_z, max_range, state["threshold"], odometry))
-            if len(window) >= 2 * cfg.workers:
+    ctx = mp.get_context("fork")
+    if not (isinstance(dataset, ScanFileDataset) and dataset.random_access):
+        window: deque = deque()
+        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+            for scan in dataset:
+                window.append(pool.submit(filter_scan, scan, cfg, mount_z, max_range, state["threshold"], odometry))
+                if len(window) >= 2 * workers:
+                    yield window.popleft().result()
+            while window:
                 yield window.popleft().result()
-        while window:
-            yield window.popleft().result()
+        return
+
+    def checked(res: tuple[int, float | None, ReadStats, object]) -> tuple[int, float | None, ReadStats, object]:
+        if isinstance(res[3], tuple):
+            raise InputError(*res[3])
+        return res
+
+    def results() -> Iterator[tuple[int, float | None, ReadStats, object]]:
+        k = 0
+        while k < len(dataset):
+            res = checked(_read_filter(dataset, k, cfg, mount_z, max_range, state["threshold"], odometry))
+            k += 1
+            yield res
+            if res[1] is not None:
+                break
+        futures: deque = deque()
+        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_pool_init,
+                                 initargs=(dataset,)) as pool:
+            while k < len(dataset) or futures:
+                while k < len(dataset) and len(futures) < 2 * workers:
+                    futures.append(pool.submit(_read_filter, None, k, cfg, mount_z, max_range,
+                                               state["threshold"], odometry))
+                    k += 1
+                yield checked(futures.popleft().result())
+
+    yield from dataset.iter_scans(results())
 
 
 def extract_markings(

@@ -18,10 +18,10 @@ has them. Decisions shared by every reader:
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 
@@ -29,6 +29,7 @@ from lidar2xodr.data import GeoOrigin, Scan, SensorInfo, Trajectory
 from lidar2xodr.errors import InputError
 
 log = logging.getLogger("lidar2xodr.datasets")
+T = TypeVar("T")
 
 
 @dataclass
@@ -181,15 +182,53 @@ class ScanFileDataset:
             scan = self._clean(k, raw)
             if scan is None:
                 continue
-            if scan.stamp < last_stamp:
-                raise InputError(
-                    self._name(k),
-                    f"scan time {scan.stamp:.6f} s is before the previous scan's {last_stamp:.6f} s "
-                    "(timestamps must increase)",
-                )
-            last_stamp = scan.stamp
-            self.stats.scans_read += 1
+            last_stamp = self._accept(k, scan.stamp, last_stamp)
             yield scan
+
+    def _accept(self, k: int, stamp: float, last_stamp: float) -> float:
+        if stamp < last_stamp:
+            raise InputError(
+                self._name(k),
+                f"scan time {stamp:.6f} s is before the previous scan's {last_stamp:.6f} s "
+                "(timestamps must increase)",
+            )
+        self.stats.scans_read += 1
+        return stamp
+
+    @property
+    def random_access(self) -> bool:
+        """Whether `read_scan(k)` may read scan k alone (formats not read as one stream)."""
+        return type(self)._raw_scans is ScanFileDataset._raw_scans
+
+    def read_scan(self, k: int) -> tuple[Scan | None, ReadStats]:
+        """Scan k read and cleaned alone, its counts in a ReadStats of its own; None when unreadable.
+
+        For readers in worker processes: after the first scan (which fixes the intensity scale and
+        an estimated mount) reading is pure, and `iter_scans` merges the counts in recording order.
+        """
+        saved, self.stats = self.stats, ReadStats()
+        try:
+            raw = self._read_checked(k)
+            return (None if raw is None else self._clean(k, raw)), self.stats
+        finally:
+            self.stats = saved
+
+    def iter_scans(self, results: Iterable[tuple[int, float | None, ReadStats, T]]) -> Iterator[T]:
+        """The payloads of per-scan results (index, stamp or None when unreadable, counts, payload).
+
+        Results come in recording order, e.g. from `read_scan` in worker processes; counted and
+        checked (timestamps increase) as `__iter__` does, and `stats` reset first like there.
+        """
+        self.stats = ReadStats()
+        last_stamp = -np.inf
+        for k, stamp, part, payload in results:
+            self.stats.bad_scans += part.bad_scans
+            self.stats.dropped_points += part.dropped_points
+            self.stats.points_read += part.points_read
+            if stamp is None:
+                continue
+            last_stamp = self._accept(k, stamp, last_stamp)
+            yield payload
 
     def _clean(self, k: int, raw: RawScan) -> Scan | None:
         name = self._name(k)

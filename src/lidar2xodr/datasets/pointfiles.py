@@ -70,11 +70,15 @@ def read_pcd(path: Path) -> RawScan:
 
 
 def read_las(path: Path, time_scale: float | None = None) -> RawScan:
-    """LAS/LAZ via laspy; `gps_time` is the per-point time (unit guessed unless `time_scale`)."""
+    """LAS/LAZ via laspy; `gps_time` is the per-point time (unit guessed unless `time_scale`).
+
+    LAZ is decompressed by single-threaded lazrs: its parallel backend starts a thread pool that a
+    forked extraction worker inherits dead (it hangs), and the workers are the parallelism.
+    """
     import laspy
 
     try:
-        las = laspy.read(path)
+        las = laspy.read(path, laz_backend=laspy.LazBackend.Lazrs)
         xyz = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])
         names = list(las.point_format.dimension_names)
         inten = np.asarray(las.intensity) if "intensity" in names else None
