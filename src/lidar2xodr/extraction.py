@@ -306,20 +306,19 @@ def local_paint_mask(
     if len(idx) == 0:
         return out, None
     tree = cKDTree(xyz[reps, :2], balanced_tree=False, compact_nodes=False)
-    dist, nn = tree.query(xyz[idx, :2], k=k)
-    nn = reps[nn]
+    dist, nn = tree.query(xyz[idx, :2], k=k, distance_upper_bound=cfg.local_max_radius_m)
+    judged = np.isfinite(dist[:, -1])
+    out[idx[~judged][intensity[idx[~judged]] >= cfg.reflectivity_threshold]] = True
+    idx, nn = idx[judged], reps[nn[judged]]
     around = np.sort(np.stack([intensity[nn], height[nn]]), axis=2)
     lo, hi = (k - 1) // 2, k // 2
     med = 0.5 * (around[:, :, lo] + around[:, :, hi])
     dev = np.sort(np.abs(around - med[:, :, None]), axis=2)
     spread = 1.4826 * 0.5 * (dev[:, :, lo] + dev[:, :, hi])
     thr = med[0] + np.maximum(cfg.local_contrast_k * spread[0], cfg.local_min_contrast)
-    rough = spread[1]
-    judged = dist[:, -1] <= cfg.local_max_radius_m
-    ok = np.where(judged, (intensity[idx] >= thr) & (rough <= cfg.local_max_roughness_m),
-                  intensity[idx] >= cfg.reflectivity_threshold)
+    ok = (intensity[idx] >= thr) & (spread[1] <= cfg.local_max_roughness_m)
     out[idx[ok]] = True
-    return out, float(np.median(thr[ok & judged])) if np.any(ok & judged) else None
+    return out, float(np.median(thr[ok])) if np.any(ok) else None
 
 
 @dataclass
