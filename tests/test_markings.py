@@ -8,7 +8,7 @@ from synth_markings import arc, make_road, polyline_distance, straight
 
 from lidar2xodr.config import MarkingsConfig
 from lidar2xodr.errors import InputError
-from lidar2xodr.markings import cluster_markings, find_candidates
+from lidar2xodr.markings import Clusters, cluster_markings, combine, find_candidates, search_mark
 
 CFG = MarkingsConfig()
 
@@ -150,3 +150,46 @@ def test_bad_points_are_input_errors() -> None:
     with pytest.raises(InputError, match="NaN"):
         find_candidates(bad, CFG)
     assert find_candidates(np.zeros((0, 3)), CFG) == []
+
+
+def _clusters(centers: list[tuple[float, float]], angles_deg: list[float], lengths: list[float]) -> Clusters:
+    """Hand-made clusters (centres at z = 0) for SearchMark and Combine on exact geometry."""
+    ang = np.radians(np.asarray(angles_deg))
+    n = len(centers)
+    return Clusters(
+        labels=np.zeros(0, dtype=np.int64),
+        centers=np.column_stack([np.asarray(centers, dtype=np.float64), np.zeros(n)]),
+        directions=np.column_stack([np.cos(ang), np.sin(ang)]),
+        lengths=np.asarray(lengths, dtype=np.float64),
+        widths=np.full(n, 0.15),
+        sizes=np.full(n, 50),
+    )
+
+
+def test_search_does_not_step_onto_the_next_lane_line() -> None:
+    """Three dashes along y = 0, the last one turned by 9 degrees (Eq. 1 turns the search by 4.5),
+    then the neighbouring line 3 m to the left: the ball at 18 m lands 1.6 m from its first dash,
+    but that dash lies 3 m beside the line extrapolated from the chain, so the chain must stop."""
+    cl = _clusters(
+        [(10.0, 0.0), (28.0, 0.0), (46.0, 0.0), (64.0, 3.0), (82.0, 3.0), (100.0, 3.0)],
+        [0.0, 0.0, 9.0, 0.0, 0.0, 0.0],
+        [6.0] * 6,
+    )
+    line_of = np.array([0, 0, 0, 1, 1, 1])
+    for gate, crosses in ((CFG.max_lateral_offset_m, False), (100.0, True)):
+        cfg = CFG.model_copy(update={"max_lateral_offset_m": gate})
+        chains = combine(search_mark(cl, cfg), cl, cfg)
+        assert any(len(set(line_of[c])) > 1 for c in chains) is crosses
+    chains = combine(search_mark(cl, CFG), cl, CFG)
+    assert sorted(sorted(c.tolist()) for c in chains) == [[0, 1, 2], [3, 4, 5]]
+
+
+def test_chain_is_cut_at_a_hop_across_the_road_and_loses_off_line_blobs() -> None:
+    """A chain along y = 0 with a blob 1.7 m beside it and a final hop across the road (75 deg)."""
+    cl = _clusters(
+        [(10.0, 0.0), (28.0, 0.0), (37.0, 1.7), (46.0, 0.0), (64.0, 0.0), (67.0, 11.0), (68.0, 16.0)],
+        [0.0, 0.0, 40.0, 0.0, 0.0, 80.0, 80.0],
+        [6.0, 6.0, 0.3, 6.0, 6.0, 0.3, 0.3],
+    )
+    chains = combine([np.arange(7)], cl, CFG)
+    assert sorted(sorted(c.tolist()) for c in chains) == [[0, 1, 3, 4], [2], [5], [6]]
