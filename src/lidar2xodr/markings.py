@@ -30,6 +30,15 @@ Decisions the paper leaves open (parameters in `MarkingsConfig`):
   merges; every result is ordered from its end nearer the origin (DistSort). Terminals sit on a
   chain's first and last elongated cluster; chains of blobs only are never linked, and only a
   chain holding an elongated cluster can absorb another (blobs bridged lines otherwise).
+- Lateral gate (ours; the paper gates by the ball only): once a chain's bases span a search step,
+  a SearchMark hit must lie within `max_lateral_offset_m` (0.8 m, a third of the minimum lane
+  width) of the line extrapolated from them, and a Combine link needs each end within that of
+  the other's extrapolation. One dash turned by a few degrees steered the 1.75 m ball onto the
+  next lane line; the paper's 3 m steps, 27 m reach, 1.75 m ball and 63 m Combine are unchanged.
+- Chains are pruned before and after Combine: a blob between two elongated clusters lying more
+  than `max_lateral_offset_m` beside them leaves the chain, and the chain is cut at a step that
+  deviates by more than `combine_max_angle_deg` from its smoothed direction while moving more
+  than `max_lateral_offset_m` sideways (blob-to-blob hops across the road).
 """
 
 from __future__ import annotations
