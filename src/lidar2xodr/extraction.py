@@ -473,19 +473,22 @@ def worker_count(cfg: ExtractionConfig) -> int:
     return max(1, min(cpus, 8))
 
 
-_POOL_DATASET: ScanFileDataset | None = None
+_POOL: tuple = ()
 
 
-def _pool_init(dataset: ScanFileDataset) -> None:
-    global _POOL_DATASET
-    _POOL_DATASET = dataset
+def _pool_init(*args: object) -> None:
+    """Worker state, set once per worker: (dataset, cfg, mount_z, max_range, odometry)."""
+    global _POOL
+    _POOL = args
 
 
-def _read_filter(dataset: ScanFileDataset | None, k: int, cfg: ExtractionConfig, mount_z: float, max_range: float,
-                 threshold: float | None, odometry: bool) -> tuple[int, float | None, ReadStats, object]:
+def _pool_task(k: int, threshold: float | None) -> tuple[int, float | None, ReadStats, object]:
+    return _read_filter(k, threshold, *_POOL)
+
+
+def _read_filter(k: int, threshold: float | None, dataset: ScanFileDataset, cfg: ExtractionConfig, mount_z: float,
+                 max_range: float, odometry: bool) -> tuple[int, float | None, ReadStats, object]:
     """Read scan k and filter it, for `iter_scans`; an InputError comes back as its (where, problem)."""
-    dataset = dataset if dataset is not None else _POOL_DATASET
-    assert dataset is not None
     try:
         scan, stats = dataset.read_scan(k)
         if scan is None:
@@ -534,21 +537,22 @@ def _filtered(dataset: Dataset, cfg: ExtractionConfig, state: dict, odometry: bo
             raise InputError(*res[3])
         return res
 
+    args = (dataset, cfg, mount_z, max_range, odometry)
+
     def results() -> Iterator[tuple[int, float | None, ReadStats, object]]:
         k = 0
         while k < len(dataset):
-            res = checked(_read_filter(dataset, k, cfg, mount_z, max_range, state["threshold"], odometry))
+            res = checked(_read_filter(k, state["threshold"], *args))
             k += 1
             yield res
             if res[1] is not None:
                 break
         futures: deque = deque()
         with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_pool_init,
-                                 initargs=(dataset,)) as pool:
+                                 initargs=args) as pool:
             while k < len(dataset) or futures:
                 while k < len(dataset) and len(futures) < 2 * workers:
-                    futures.append(pool.submit(_read_filter, None, k, cfg, mount_z, max_range,
-                                               state["threshold"], odometry))
+                    futures.append(pool.submit(_pool_task, k, state["threshold"]))
                     k += 1
                 yield checked(futures.popleft().result())
 
