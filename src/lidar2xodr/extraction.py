@@ -28,9 +28,11 @@ Decisions beyond the paper:
   the same returns twice; points not newer than the previous scan's last point are not
   accumulated again (the local test still sees the whole revolution).
 - Streaming: only the marking points (and, while a per-drive threshold is unknown, the ground
-  band) are kept; memory does not grow with the drive beyond the marking cloud. `filter_scan` is
-  pure and seeded per scan, so `workers` > 1 filters scans in a process pool (fork) with the
-  same result; on a busy 2-core machine one process is as fast (see the README's timings).
+  band) are kept; memory does not grow with the drive beyond the marking cloud. Reading and
+  `filter_scan` are pure and seeded per scan, so `workers` (default 'auto': the CPUs this process
+  may use, at most 8) processes read and filter whole scans (fork) and the parent takes them in
+  recording order: the same bytes as one process. On the shared 2-core machine: 3 km simulated
+  drive 17-20x real time with 1 worker, 22-31x with 2.
 """
 
 from __future__ import annotations
