@@ -317,28 +317,14 @@ def export(
     config: Path | None = ConfigOpt,
 ) -> None:
     """Stage 4 alone: OpenDRIVE from a lane model (paper Alg. 3), checked before it is written."""
-    import tempfile
-
-    from lidar2xodr.check import check_file
     from lidar2xodr.config import Config
-    from lidar2xodr.export_opendrive import export_opendrive
-    from lidar2xodr.fileio import atomic_path
     from lidar2xodr.lanes import load_lanes
     from lidar2xodr.markings_io import load_markings
-    from lidar2xodr.pipeline import _verdict_line
+    from lidar2xodr.pipeline import _verdict_line, write_checked_map
 
-    cfg = Config.load(config)
     model = load_lanes(lanes_json)
     planes = load_markings(markings).planes if markings else None
-    with tempfile.TemporaryDirectory(prefix=".lidar2xodr-") as tmp:
-        tmp_map = Path(tmp) / output.name
-        summary = export_opendrive(model, planes, cfg.export, tmp_map)
-        verdict = check_file(tmp_map)
-        if not verdict["ok"] and not allow_invalid:
-            raise InputError(lanes_json, f"the map fails the checks ({_verdict_line(verdict)}); nothing written "
-                                         "(use --allow-invalid to write it anyway)")
-        with atomic_path(output) as target:
-            target.write_bytes(tmp_map.read_bytes())
+    summary, verdict = write_checked_map(model, planes, Config.load(config), output, allow_invalid, where=lanes_json)
     out.print(f"wrote {output}: {summary.length_m:.0f} m, {summary.pieces} paramPoly3 pieces, "
               f"{summary.lane_sections} lane sections; check: {_verdict_line(verdict)}", highlight=False)
 

@@ -20,7 +20,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from lidar2xodr.config import Config
-from lidar2xodr.data import LaneModel, MarkingCloud
+from lidar2xodr.data import GroundPlanes, LaneModel, MarkingCloud
 from lidar2xodr.errors import InputError, OutputError
 
 
@@ -105,30 +105,13 @@ class BuildPipeline:
         return model
 
     def run(self) -> BuildResult:
-        from lidar2xodr.check import check_file
-        from lidar2xodr.export_opendrive import export_opendrive
-
         cloud = self.extract()
         model = self.lanes(cloud)
-        try:
-            self.out.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise OutputError(self.out, f"cannot create the output folder: {exc.strerror or exc}") from None
-        with tempfile.TemporaryDirectory(prefix=".lidar2xodr-", dir=self.out.parent) as tmp:
-            tmp_map = Path(tmp) / self.out.name
-            with self._stage("export"):
-                summary = export_opendrive(model, cloud.planes, self.config.export, tmp_map)
-            with self._stage("check"):
-                verdict = check_file(tmp_map)
-            if not verdict["ok"] and not self.allow_invalid:
-                raise InputError(
-                    self.drive,
-                    f"the generated map fails the checks ({_verdict_line(verdict)}); "
-                    "nothing written (use --allow-invalid to write it anyway)",
-                )
-            if self.keep:
-                self._keep(cloud, model)
-            shutil.move(str(tmp_map), self.out)
+        summary, verdict = write_checked_map(
+            model, cloud.planes, self.config, self.out, self.allow_invalid, where=self.drive, timings=self.timings
+        )
+        if self.keep:
+            self._keep(cloud, model)
         result = BuildResult(map_path=self.out, timings=self.timings, check=verdict, warnings=list(model.warnings))
         result.summary = {
             "length_m": float(model.s[-1] - model.s[0]) if len(model.s) else 0.0,
@@ -181,6 +164,46 @@ class BuildPipeline:
         assert self.keep is not None
         save_markings(cloud, self.keep / "markings.ply")
         save_lanes(model, self.keep / "lanes.json")
+
+
+def write_checked_map(
+    model: LaneModel,
+    planes: GroundPlanes | None,
+    config: Config,
+    out: Path,
+    allow_invalid: bool = False,
+    where: str | Path = "lane model",
+    timings: dict[str, float] | None = None,
+) -> tuple[Any, dict[str, Any]]:
+    """Export to a temporary file, run `check` on it, and move it into place only if it passes.
+
+    A map that fails the checks is written only with `allow_invalid`; otherwise nothing is
+    written and the error names `where` the model came from. Returns (export summary, verdict).
+    """
+    from lidar2xodr.check import check_file
+    from lidar2xodr.export_opendrive import export_opendrive
+
+    timings = timings if timings is not None else {}
+    out = Path(out)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(out, f"cannot create the output folder: {exc.strerror or exc}") from None
+    with tempfile.TemporaryDirectory(prefix=".lidar2xodr-", dir=out.parent) as tmp:
+        tmp_map = Path(tmp) / out.name
+        t0 = time.perf_counter()
+        summary = export_opendrive(model, planes, config.export, tmp_map)
+        t1 = time.perf_counter()
+        verdict = check_file(tmp_map)
+        timings.update(export=t1 - t0, check=time.perf_counter() - t1)
+        if not verdict["ok"] and not allow_invalid:
+            raise InputError(
+                where,
+                f"the generated map fails the checks ({_verdict_line(verdict)}); "
+                "nothing written (use --allow-invalid to write it anyway)",
+            )
+        shutil.move(str(tmp_map), out)
+    return summary, verdict
 
 
 def _verdict_line(verdict: dict[str, Any]) -> str:
