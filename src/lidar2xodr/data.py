@@ -141,3 +141,33 @@ class LaneModel:
     candidates: list[Candidate] = field(default_factory=list)
     origin: GeoOrigin = field(default_factory=GeoOrigin)
     warnings: list[str] = field(default_factory=list)
+
+
+@dataclass
+class RoadLink:
+    """Lanes of road `incoming` at its end continue in road `outgoing` at its start (a direct junction).
+
+    Lane k of a section is the lane between its boundary_ids[k] and boundary_ids[k + 1] (left to
+    right). `lanes` pairs lane indices of the incoming road's last section with lane indices of the
+    outgoing road's first section. `continuation`: the outgoing road is the same carriageway as the
+    incoming one (a split of one measured road, its reference line goes on exactly); otherwise one
+    of the two is a branch that diverges from (or a ramp that merges into) the other.
+    """
+
+    incoming: int  # index into RoadNetwork.roads
+    outgoing: int
+    lanes: list[tuple[int, int]]
+    continuation: bool = True
+
+
+@dataclass
+class RoadNetwork:
+    """Output of the lanes stage when the carriageway splits or merges: roads joined by direct junctions.
+
+    A single road is a network with one road and no links. Links that share an incoming road's end
+    (a diverge) or an outgoing road's start (a merge) form one junction.
+    """
+
+    roads: list[LaneModel]
+    links: list[RoadLink] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
