@@ -328,7 +328,8 @@ class ScanMarks:
     """One scan after the per-scan filters (vehicle frame): what accumulation and odometry need.
 
     `final` is False while a per-drive threshold is still unknown: the points are then the whole
-    road band and `calib` the intensities that will set the threshold.
+    road band and `calib` the intensities that will set the threshold. With `pose` (the vehicle
+    pose at the stamp) `xyz` is already in the world frame (GNSS placement in the worker).
     """
 
     index: int
@@ -345,6 +346,7 @@ class ScanMarks:
     local_threshold: float | None = None
     odo_xyz: np.ndarray | None = None
     odo_times: np.ndarray | None = None
+    pose: np.ndarray | None = None
 
 
 def filter_scan(scan: Scan, cfg: ExtractionConfig, mount_z: float, max_range: float,
@@ -397,6 +399,50 @@ def filter_scan(scan: Scan, cfg: ExtractionConfig, mount_z: float, max_range: fl
     return out
 
 
+class GnssPlacer:
+    """Each point at its own time in the world frame from the GNSS trajectory (motion compensation).
+
+    Rotation by SLERP (scipy), translation linear, both between the two poses around the time.
+    Pure, so pool workers place their scans themselves (fork: the trajectory is inherited, never
+    pickled); `check` is the parent's, on the points a scan finally keeps.
+    """
+
+    def __init__(self, traj: Trajectory, cfg: ExtractionConfig) -> None:
+        self.traj = traj
+        self.tol = cfg.pose_time_tolerance_s
+        self.slerp = Slerp(traj.times, Rotation.from_matrix(traj.poses[:, :3, :3]))
+
+    def check(self, stamp: float, times: np.ndarray | None, where: str) -> None:
+        """InputError when the stamp or a point time lies outside the poses (beyond the tolerance)."""
+        t0, t1 = self.traj.times[0], self.traj.times[-1]
+        lo = hi = stamp
+        if times is not None and len(times):
+            lo, hi = min(lo, float(times.min())), max(hi, float(times.max()))
+        if lo < t0 - self.tol or hi > t1 + self.tol:
+            raise InputError(where, f"scan time {lo:.3f}..{hi:.3f} s is outside the poses' "
+                             f"{t0:.3f}..{t1:.3f} s: the poses do not cover the scans")
+
+    def place(self, stamp: float, xyz: np.ndarray, times: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """The points in the world frame and the vehicle pose (4 x 4) at the stamp; times are clipped to the poses.
+
+        Translations are interpolated on the few poses around the scan (the same numbers as on the
+        whole trajectory, without copying it per scan).
+        """
+        traj = self.traj
+        t = np.full(len(xyz) + 1, stamp) if times is None else np.concatenate([[stamp], times])
+        np.clip(t, traj.times[0], traj.times[-1], out=t)
+        lo = max(int(np.searchsorted(traj.times, t.min(), "right")) - 1, 0)
+        hi = min(int(np.searchsorted(traj.times, t.max(), "left")) + 2, len(traj.times))
+        tw, pw = traj.times[lo:hi], traj.positions[lo:hi]
+        pos = np.column_stack([np.interp(t, tw, pw[:, j]) for j in range(3)])
+        rot = self.slerp(t)
+        T = np.eye(4)
+        T[:3, :3] = rot[0].as_matrix()
+        T[:3, 3] = pos[0]
+        world = rot[1:].apply(xyz) + pos[1:] if len(xyz) else xyz.reshape(0, 3)
+        return world, T
+
+
 class _PoseSource:
     """World placement: GNSS trajectory interpolation, or LiDAR odometry."""
 
@@ -405,11 +451,11 @@ class _PoseSource:
         self.mode = mode
         self.name = str(dataset.path)
         self.odo = None
+        self.gnss: GnssPlacer | None = None
         if mode == "gnss":
             traj = dataset.poses()
             assert traj is not None
-            self.traj = traj
-            self.slerp = Slerp(traj.times, Rotation.from_matrix(traj.poses[:, :3, :3]))
+            self.gnss = GnssPlacer(traj, cfg)
         else:
             from lidar2xodr.odometry import LidarOdometry
 
@@ -427,32 +473,21 @@ class _PoseSource:
     def finish(self) -> int:
         return self.odo.finish() if self.odo is not None else self.fed
 
-    def _interp(self, t: np.ndarray, where: str) -> tuple[Rotation, np.ndarray]:
-        t0, t1 = self.traj.times[0], self.traj.times[-1]
-        tol = self.cfg.pose_time_tolerance_s
-        if t.min() < t0 - tol or t.max() > t1 + tol:
-            raise InputError(where, f"scan time {t.min():.3f}..{t.max():.3f} s is outside the poses' "
-                             f"{t0:.3f}..{t1:.3f} s: the poses do not cover the scans")
-        t = np.clip(t, t0, t1)
-        uniq, inv = np.unique(t, return_inverse=True)
-        rot = self.slerp(uniq)
-        pos = np.column_stack([np.interp(uniq, self.traj.times, self.traj.positions[:, j]) for j in range(3)])
-        return rot[inv], pos[inv]
-
     def place(self, k: int, m: ScanMarks, xyz: np.ndarray, times: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """The points in the world frame (each at its own time) and the vehicle pose at the scan stamp."""
+        """The points in the world frame (each at its own time) and the vehicle pose at the scan stamp.
+
+        Points the filter already placed (`m.pose`, GNSS) are only checked against the poses' span.
+        """
         if self.odo is not None:
             return self.odo.to_world(k, xyz, times), self.odo.poses[k]
-        t = np.full(len(xyz), m.stamp) if times is None else times
-        rot, pos = self._interp(np.concatenate([[m.stamp], t]), f"{self.name} scan {m.index}")
-        T = np.eye(4)
-        T[:3, :3] = rot[0].as_matrix()
-        T[:3, 3] = pos[0]
-        world = rot[1:].apply(xyz) + pos[1:] if len(xyz) else xyz.reshape(0, 3)
-        return world, T
+        assert self.gnss is not None
+        self.gnss.check(m.stamp, times, f"{self.name} scan {m.index}")
+        if m.pose is not None:
+            return xyz, m.pose
+        return self.gnss.place(m.stamp, xyz, times)
 
     def trajectory(self) -> Trajectory:
-        return self.odo.trajectory if self.odo is not None else self.traj
+        return self.odo.trajectory if self.odo is not None else self.gnss.traj  # type: ignore[union-attr]
 
 
 def _mode(dataset: Dataset, cfg: ExtractionConfig) -> str:
@@ -475,49 +510,78 @@ def worker_count(cfg: ExtractionConfig) -> int:
     return max(1, min(cpus, 8))
 
 
-_POOL: tuple = ()
+_Result = tuple[int, float | None, ReadStats, object]
+_BATCH = 4
 
 
-def _pool_init(*args: object) -> None:
-    """Worker state, set once per worker: (dataset, cfg, mount_z, max_range, odometry)."""
-    global _POOL
-    _POOL = args
+@dataclass
+class _Job:
+    """Everything filtering a scan needs besides the scan; pool workers inherit it once (fork)."""
+
+    dataset: Dataset
+    cfg: ExtractionConfig
+    mount_z: float
+    max_range: float
+    odometry: bool
+    placer: GnssPlacer | None
+
+    def filter(self, scan: Scan, threshold: float | None) -> ScanMarks:
+        """`filter_scan`, then, with GNSS poses, the marking points placed in the world frame."""
+        m = filter_scan(scan, self.cfg, self.mount_z, self.max_range, threshold, self.odometry)
+        if self.placer is not None:
+            m.xyz, m.pose = self.placer.place(m.stamp, m.xyz, m.times)
+        return m
+
+    def read_filter(self, k: int, threshold: float | None) -> _Result:
+        """Read scan k and filter it, for `iter_scans`; an InputError comes back as its (where, problem)."""
+        assert isinstance(self.dataset, ScanFileDataset)
+        try:
+            scan, stats = self.dataset.read_scan(k)
+            if scan is None:
+                return k, None, stats, None
+            return k, scan.stamp, stats, self.filter(scan, threshold)
+        except InputError as exc:
+            return k, None, ReadStats(), (exc.where, exc.problem)
 
 
-def _pool_task(k: int, threshold: float | None) -> tuple[int, float | None, ReadStats, object]:
-    return _read_filter(k, threshold, *_POOL)
+_JOB: _Job | None = None
 
 
-def _read_filter(k: int, threshold: float | None, dataset: ScanFileDataset, cfg: ExtractionConfig, mount_z: float,
-                 max_range: float, odometry: bool) -> tuple[int, float | None, ReadStats, object]:
-    """Read scan k and filter it, for `iter_scans`; an InputError comes back as its (where, problem)."""
-    try:
-        scan, stats = dataset.read_scan(k)
-        if scan is None:
-            return k, None, stats, None
-        return k, scan.stamp, stats, filter_scan(scan, cfg, mount_z, max_range, threshold, odometry)
-    except InputError as exc:
-        return k, None, ReadStats(), (exc.where, exc.problem)
+def _pool_init(job: _Job) -> None:
+    global _JOB
+    _JOB = job
 
 
-def _filtered(dataset: Dataset, cfg: ExtractionConfig, state: dict, odometry: bool) -> Iterator[ScanMarks]:
-    """`filter_scan` over the drive, in recording order; with `workers` > 1 in a process pool.
+def _pool_read(ks: range, threshold: float | None) -> list[_Result]:
+    assert _JOB is not None
+    return [_JOB.read_filter(k, threshold) for k in ks]
 
-    With a pool (fork) each worker reads and filters whole scans (`ScanFileDataset.read_scan`),
-    so only the few marking points travel between processes; the parent reads the first readable
-    scan itself, since it fixes the reader's intensity scale (and an estimated mount) that the
-    workers inherit. At most 2 scans per worker are in flight (memory stays flat on long drives)
-    and results are taken in recording order, so the output is the same bytes as with one
-    process. `state` holds the threshold known when a scan is handed out (a per-drive threshold
-    may still be unknown). Readers of one stream (rosbag) are read in the parent and filtered in
-    the pool.
+
+def _pool_filter(scan: Scan, threshold: float | None) -> ScanMarks:
+    assert _JOB is not None
+    return _JOB.filter(scan, threshold)
+
+
+def _filtered(dataset: Dataset, cfg: ExtractionConfig, state: dict, odometry: bool,
+              placer: GnssPlacer | None) -> Iterator[ScanMarks]:
+    """`_Job.filter` over the drive, in recording order; with `workers` > 1 in a process pool.
+
+    With a pool (fork) each worker reads, filters and places whole scans
+    (`ScanFileDataset.read_scan`), `_BATCH` consecutive scans per task, so only the few marking
+    points travel between processes, and few messages; the parent reads the first readable scan
+    itself, since it fixes the reader's intensity scale (and an estimated mount) that the workers
+    inherit. At most 2 tasks per worker are in flight (memory stays flat on long drives) and
+    results are taken in recording order, so the output is the same bytes as with one process.
+    `state` holds the threshold known when a scan is handed out (a per-drive threshold may still
+    be unknown). Readers of one stream (rosbag) are read in the parent and filtered in the pool.
     """
     mount_z = float(dataset.sensor.mount[2, 3])
     max_range = cfg.max_range_m if cfg.max_range_m is not None else dataset.sensor.max_range_m
+    job = _Job(dataset, cfg, mount_z, max_range, odometry, placer)
     workers = min(worker_count(cfg), max(1, len(dataset)))
     if workers <= 1:
         for scan in dataset:
-            yield filter_scan(scan, cfg, mount_z, max_range, state["threshold"], odometry)
+            yield job.filter(scan, state["threshold"])
         return
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
@@ -525,38 +589,38 @@ def _filtered(dataset: Dataset, cfg: ExtractionConfig, state: dict, odometry: bo
     ctx = mp.get_context("fork")
     if not (isinstance(dataset, ScanFileDataset) and dataset.random_access):
         window: deque = deque()
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_pool_init,
+                                 initargs=(job,)) as pool:
             for scan in dataset:
-                window.append(pool.submit(filter_scan, scan, cfg, mount_z, max_range, state["threshold"], odometry))
+                window.append(pool.submit(_pool_filter, scan, state["threshold"]))
                 if len(window) >= 2 * workers:
                     yield window.popleft().result()
             while window:
                 yield window.popleft().result()
         return
 
-    def checked(res: tuple[int, float | None, ReadStats, object]) -> tuple[int, float | None, ReadStats, object]:
+    def checked(res: _Result) -> _Result:
         if isinstance(res[3], tuple):
             raise InputError(*res[3])
         return res
 
-    args = (dataset, cfg, mount_z, max_range, odometry)
-
-    def results() -> Iterator[tuple[int, float | None, ReadStats, object]]:
-        k = 0
-        while k < len(dataset):
-            res = checked(_read_filter(k, state["threshold"], *args))
+    def results() -> Iterator[_Result]:
+        k, n = 0, len(dataset)
+        while k < n:
+            res = checked(job.read_filter(k, state["threshold"]))
             k += 1
             yield res
             if res[1] is not None:
                 break
         futures: deque = deque()
         with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_pool_init,
-                                 initargs=args) as pool:
-            while k < len(dataset) or futures:
-                while k < len(dataset) and len(futures) < 2 * workers:
-                    futures.append(pool.submit(_pool_task, k, state["threshold"]))
-                    k += 1
-                yield checked(futures.popleft().result())
+                                 initargs=(job,)) as pool:
+            while k < n or futures:
+                while k < n and len(futures) < 2 * workers:
+                    futures.append(pool.submit(_pool_read, range(k, min(k + _BATCH, n)), state["threshold"]))
+                    k += _BATCH
+                for res in futures.popleft().result():
+                    yield checked(res)
 
     yield from dataset.iter_scans(results())
 
@@ -625,7 +689,7 @@ def extract_markings(
         rep.threshold = state["threshold"]
         calib.clear()
 
-    for m in _filtered(dataset, cfg, state, odometry=mode == "lidar"):
+    for m in _filtered(dataset, cfg, state, mode == "lidar", poses.gnss):
         if len(dataset.stats.bad_scans) > cfg.max_bad_scan_share * rep.scans_total:
             _too_many_bad(dataset, cfg)
         rep.ground_fallbacks += int(m.fell_back)
