@@ -148,6 +148,10 @@ class LanesConfig(_Section):
     divider_max_wrong_side_m: float = Field(10.0, description="ours: stations with the ego on the wrong side of a "
                                             "divider candidate it may have (projection noise at a U-turn); a lane "
                                             "change across it lasts far longer")
+    branch_widening_m: float = Field(1.0, description="ours: an outermost lane wider than its median width by this "
+                                     "at a section end (start) leaves (joins) the road: a split, exit or merge")
+    branch_min_length_m: float = Field(30.0, description="ours: a leaving or joining lane becomes a road of its own "
+                                       "when its markings give lanes over at least this length")
 
 
 class ExportConfig(_Section):

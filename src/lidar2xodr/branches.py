@@ -1,0 +1,444 @@
+"""Splits, exits and merges: the carriageway as several roads joined by direct junctions.
+
+The lanes stage (`lanes.build_lane_model`) models the ego's carriageway as one road. Where a lane
+leaves it (a split or an exit: the lane's width grows beyond every lane width because its lines
+diverge) or joins it (a merge: a lane converges from far away, or appears at full width rather than
+growing from zero like an added lane), that one road is cut at the junction station and the lane
+that leaves or joins becomes its own road, built from the markings the carriageway does not explain.
+Nothing here uses the ego trajectory to connect markings (the lanes stage uses it only to pick the
+carriageway; the branch's lanes stage likewise).
+
+Rules (parameters in `LanesConfig`):
+- Event: the outermost lane of a lane section (the rightmost; the leftmost too on a one-way road)
+  whose width at the section's end (diverge) or start (merge) exceeds its median width by
+  `branch_widening_m`, or (merge) a new outermost lane at a section start that starts at 70 % of its
+  width or more, not at the start of the drive (an added lane grows from zero: the lanes stage
+  follows its taper). The junction station is where the lane's width was last normal (median +
+  0.3 m): the gore nose, where the two lines begin to separate.
+- Roads: the measured road before the junction (A) and after it (B: the same reference line, so B
+  continues A exactly, without the lane that leaves or joins) plus the branch (C). C is built by the
+  lanes stage from the marking points beside the lost lane's side beyond the junction (before it, for
+  a merge) that lie farther than `assign_distance_m` from every line kept in B, plus the lost lane's
+  own two lines over 15 m at the junction, so C starts at the gore. C is kept when it has lanes over
+  `branch_min_length_m`, its junction end lies within two lane widths of the lost lane's middle and its
+  heading there is within 30 deg of the road's; it is oriented to travel like the road (a diverging
+  branch starts at the junction, a merging one ends there) and cut to start (end) on the junction's
+  cross-section. Otherwise the lane ends at the junction (a warning says why).
+- Links: A -> B as a continuation (every lane that goes on, by lateral overlap); A -> C (diverge) or
+  C -> B (merge): the lost lane to C's lane on that side. The exporter writes them as one direct
+  junction and snaps C's lane borders onto the road's at the junction.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from lidar2xodr.config import LanesConfig, MarkingsConfig
+from lidar2xodr.data import LaneModel, LaneSection, MarkingCloud, RoadLink, RoadNetwork
+from lidar2xodr.errors import InputError
+
+_NORMAL_MARGIN_M = 0.3
+_NEW_LANE_SHARE = 0.7
+_GORE_M = 15.0
+_MAX_HEADING_DEG = 30.0
+
+
+@dataclass
+class Event:
+    """A lane that leaves (diverge) or joins (merge) the road at station index `k`."""
+
+    kind: str  # diverge | merge
+    k: int
+    section: int  # index of the section holding the lane
+    lane: int  # lane index in that section (between boundary_ids[lane] and [lane + 1])
+    side: str  # right | left
+
+
+def _stations_of(model: LaneModel, sec: LaneSection) -> np.ndarray:
+    return np.flatnonzero((model.s >= sec.s_start - 1e-9) & (model.s <= sec.s_end + 1e-9))
+
+
+def _lane_width(model: LaneModel, sec: LaneSection, lane: int, ks: np.ndarray) -> np.ndarray:
+    by_id = {b.id: b for b in model.boundaries}
+    return by_id[sec.boundary_ids[lane]].t[ks] - by_id[sec.boundary_ids[lane + 1]].t[ks]
+
+
+def _outer_lanes(sec: LaneSection) -> list[tuple[int, str]]:
+    lanes = [(len(sec.boundary_ids) - 2, "right")]
+    if sec.divider_id is None and len(sec.boundary_ids) > 2:
+        lanes.append((0, "left"))
+    return lanes
+
+
+def find_events(model: LaneModel, cfg: LanesConfig) -> list[Event]:
+    """Diverging and merging lanes of the road (see the module docstring), ordered along s."""
+    events: list[Event] = []
+    n_sec = len(model.sections)
+    for j, sec in enumerate(model.sections):
+        ks = _stations_of(model, sec)
+        if len(ks) < 6:
+            continue
+        for lane, side in _outer_lanes(sec):
+            w = _lane_width(model, sec, lane, ks)
+            ok = np.isfinite(w)
+            normal = w[ok & (w <= cfg.max_lane_width_m)]
+            if len(normal) < 5:
+                continue
+            med = float(np.median(normal))
+            outer = sec.boundary_ids[lane + 1] if side == "right" else sec.boundary_ids[lane]
+            goes_on = j + 1 < n_sec and outer in model.sections[j + 1].boundary_ids
+            came = j > 0 and outer in model.sections[j - 1].boundary_ids
+            if not goes_on and np.nanmax(w[-3:]) > med + cfg.branch_widening_m:
+                i = len(w) - 1
+                while i > 0 and not (w[i] <= med + _NORMAL_MARGIN_M):
+                    i -= 1
+                events.append(Event("diverge", int(ks[i]), j, lane, side))
+            elif not came and j > 0:
+                if np.nanmax(w[:3]) > med + cfg.branch_widening_m:
+                    i = 0
+                    while i < len(w) - 1 and not (w[i] <= med + _NORMAL_MARGIN_M):
+                        i += 1
+                    events.append(Event("merge", int(ks[i]), j, lane, side))
+                elif float(np.nanmedian(w[:3])) >= _NEW_LANE_SHARE * med and _is_new(model, j, lane):
+                    events.append(Event("merge", int(ks[0]), j, lane, side))
+    return sorted(events, key=lambda e: e.k)
+
+
+def _is_new(model: LaneModel, j: int, lane: int) -> bool:
+    """No lane of the previous section overlaps this one by half its width at the section change."""
+    by_id = {b.id: b for b in model.boundaries}
+    sec, prev = model.sections[j], model.sections[j - 1]
+    k0 = _stations_of(model, sec)[0]
+    kp = _stations_of(model, prev)[-1]
+    left, right = by_id[sec.boundary_ids[lane]].t[k0], by_id[sec.boundary_ids[lane + 1]].t[k0]
+    for i in range(len(prev.boundary_ids) - 1):
+        pl, pr = by_id[prev.boundary_ids[i]].t[kp], by_id[prev.boundary_ids[i + 1]].t[kp]
+        if min(left, pl) - max(right, pr) > 0.5 * (left - right):
+            return False
+    return True
+
+
+# --------------------------------------------------------------------------------------------
+# slicing and orienting lane models
+
+
+def slice_model(model: LaneModel, k0: int, k1: int, drop: set[int] | None = None) -> LaneModel:
+    """Stations k0..k1 (inclusive) as a road of its own, s from 0, without the boundaries in `drop`."""
+    drop = drop or set()
+    s0, s1 = float(model.s[k0]), float(model.s[k1])
+    sections: list[LaneSection] = []
+    for sec in model.sections:
+        a, b = max(sec.s_start, s0), min(sec.s_end, s1)
+        if b - a <= 1e-9:
+            continue
+        ids = [i for i in sec.boundary_ids if i not in drop]
+        divider = sec.divider_id if sec.divider_id in ids[1:-1] else None
+        if len(ids) < 2:
+            continue
+        if sections and sections[-1].boundary_ids == ids and sections[-1].divider_id == divider:
+            sections[-1].s_end = b - s0
+        else:
+            sections.append(LaneSection(a - s0, b - s0, ids, divider))
+    if sections:
+        sections[0].s_start = 0.0
+        sections[-1].s_end = s1 - s0
+        for prev, nxt in zip(sections, sections[1:], strict=False):
+            nxt.s_start = prev.s_end
+    keep = {i for sec in sections for i in sec.boundary_ids}
+    boundaries = [replace(b, t=np.asarray(b.t[k0 : k1 + 1], dtype=np.float64).copy())
+                  for b in model.boundaries if b.id in keep]
+    return LaneModel(s=np.asarray(model.s[k0 : k1 + 1]) - s0, reference=np.asarray(model.reference[k0 : k1 + 1]).copy(),
+                     boundaries=boundaries, sections=sections, origin=model.origin, warnings=[])
+
+
+def flip_model(model: LaneModel) -> LaneModel:
+    """The same road described in the opposite direction (left and right swap)."""
+    length = float(model.s[-1])
+    boundaries = [replace(b, t=-np.asarray(b.t)[::-1].copy()) for b in model.boundaries]
+    sections = [LaneSection(length - sec.s_end, length - sec.s_start, list(reversed(sec.boundary_ids)), sec.divider_id)
+                for sec in reversed(model.sections)]
+    return LaneModel(s=(length - model.s[::-1]).copy(), reference=model.reference[::-1].copy(), boundaries=boundaries,
+                     sections=sections, candidates=model.candidates, origin=model.origin, warnings=list(model.warnings))
+
+
+# --------------------------------------------------------------------------------------------
+# geometry helpers
+
+
+def _frame(model: LaneModel) -> tuple[cKDTree, np.ndarray, np.ndarray]:
+    ref = np.asarray(model.reference, dtype=np.float64)[:, :2]
+    tan = np.gradient(ref, axis=0)
+    tan /= np.maximum(np.linalg.norm(tan, axis=1), 1e-12)[:, None]
+    return cKDTree(ref), ref, np.stack([-tan[:, 1], tan[:, 0]], axis=1)
+
+
+def _project(model: LaneModel, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest station index and left offset of points."""
+    tree, ref, normal = _frame(model)
+    _, k = tree.query(xy)
+    return k, np.sum((xy - ref[k]) * normal[k], axis=1)
+
+
+def _world(model: LaneModel, bid: int, ks: np.ndarray) -> np.ndarray:
+    _, ref, normal = _frame(model)
+    t = {b.id: b.t for b in model.boundaries}[bid]
+    return ref[ks] + normal[ks] * t[ks, None]
+
+
+def _heading(model: LaneModel, k: int) -> float:
+    ref = np.asarray(model.reference)[:, :2]
+    a, b = max(k - 3, 0), min(k + 3, len(ref) - 1)
+    d = ref[b] - ref[a]
+    return float(np.arctan2(d[1], d[0]))
+
+
+# --------------------------------------------------------------------------------------------
+# the branch road
+
+
+def _branch_cloud(cloud: MarkingCloud, main: LaneModel, ev: Event, kept_lines: list[np.ndarray],
+                  cfg: LanesConfig) -> MarkingCloud:
+    """Marking points of the branch: beyond the junction on the lost side, not on a line kept in B."""
+    sec = main.sections[ev.section]
+    xy = np.asarray(cloud.xyz)[:, :2]
+    k, t = _project(main, xy)
+    by_id = {b.id: b for b in main.boundaries}
+    inner = sec.boundary_ids[ev.lane] if ev.side == "right" else sec.boundary_ids[ev.lane + 1]
+    outer = sec.boundary_ids[ev.lane + 1] if ev.side == "right" else sec.boundary_ids[ev.lane]
+    sign = 1.0 if ev.side == "left" else -1.0
+    gore = int(round(_GORE_M / max(float(main.s[1] - main.s[0]), 1e-6)))
+    ahead = k >= ev.k if ev.kind == "diverge" else k <= ev.k
+    t_in = by_id[inner].t[ev.k]
+    beside = sign * (t - t_in) > cfg.assign_distance_m
+    far = _far_from(xy, kept_lines, cfg.assign_distance_m * 2)
+    take = ahead & beside & far
+    # the lost lane's own lines at the gore, so the branch starts at the junction
+    near_gore = (k >= ev.k - gore) & (k <= ev.k + gore)
+    for bid in (inner, outer):
+        tb = by_id[bid].t[np.clip(k, 0, len(main.s) - 1)]
+        take |= near_gore & (np.abs(t - tb) < cfg.assign_distance_m)
+    return _subset(cloud, np.flatnonzero(take))
+
+
+def _orient_and_cut(branch: LaneModel, main: LaneModel, ev: Event, cfg: LanesConfig) -> tuple[LaneModel | None, str]:
+    """Branch oriented like the road, cut at the junction's cross-section; None (and why) if it does not fit."""
+    sec = main.sections[ev.section]
+    by_id = {b.id: b for b in main.boundaries}
+    t_mid = 0.5 * (by_id[sec.boundary_ids[ev.lane]].t[ev.k] + by_id[sec.boundary_ids[ev.lane + 1]].t[ev.k])
+    _, ref, normal = _frame(main)
+    fork = ref[ev.k] + normal[ev.k] * t_mid
+    width = abs(float(by_id[sec.boundary_ids[ev.lane]].t[ev.k] - by_id[sec.boundary_ids[ev.lane + 1]].t[ev.k]))
+    bref = np.asarray(branch.reference)[:, :2]
+    d = np.linalg.norm(bref - fork, axis=1)
+    k_near = int(np.argmin(d))
+    if d[k_near] > 2.0 * max(width, 3.0):
+        return None, f"its lines come no closer than {d[k_near]:.1f} m to the junction"
+    h_main = _heading(main, ev.k)
+    h_branch = _heading(branch, k_near)
+    turn = np.degrees(abs((h_branch - h_main + np.pi) % (2 * np.pi) - np.pi))
+    if turn > 90.0:
+        branch = flip_model(branch)
+        k_near = len(branch.s) - 1 - k_near
+        turn = 180.0 - turn
+    if turn > _MAX_HEADING_DEG:
+        return None, f"it meets the road at {turn:.0f} deg"
+    # the part beyond the cross-section on the road's side of the junction is cut away
+    along = np.array([np.cos(h_main), np.sin(h_main)])
+    ahead = (np.asarray(branch.reference)[:, :2] - ref[ev.k]) @ along
+    if ev.kind == "diverge":
+        idx = np.flatnonzero(ahead >= 0.0)
+        k0, k1 = (int(idx[0]), len(branch.s) - 1) if len(idx) else (0, -1)
+    else:
+        idx = np.flatnonzero(ahead <= 0.0)
+        k0, k1 = (0, int(idx[-1])) if len(idx) else (0, -1)
+    if k1 - k0 < 4 or branch.s[k1] - branch.s[k0] < cfg.branch_min_length_m:
+        return None, f"it is shorter than {cfg.branch_min_length_m:g} m beyond the junction"
+    out = slice_model(branch, k0, k1)
+    if not out.sections:
+        return None, "it has no lanes beyond the junction"
+    return out, ""
+
+
+def _lane_links(prev: LaneModel, nxt: LaneModel) -> list[tuple[int, int]]:
+    """Lanes of prev's last section that go on in nxt's first section (by lateral overlap; one frame)."""
+    pa, na = prev.sections[-1], nxt.sections[0]
+    tp = {b.id: b.t[-1] for b in prev.boundaries}
+    tn = {b.id: b.t[0] for b in nxt.boundaries}
+    pairs = []
+    for i in range(len(pa.boundary_ids) - 1):
+        l0, r0 = tp[pa.boundary_ids[i]], tp[pa.boundary_ids[i + 1]]
+        for j in range(len(na.boundary_ids) - 1):
+            l1, r1 = tn[na.boundary_ids[j]], tn[na.boundary_ids[j + 1]]
+            ov = min(l0, l1) - max(r0, r1)
+            if ov > 0.5 * min(l0 - r0, l1 - r1):
+                pairs.append((i, j))
+    return pairs
+
+
+def _normal_lines(model: LaneModel, cfg: LanesConfig) -> list[np.ndarray]:
+    """World x, y of every boundary where both its lanes (if any) have a normal width."""
+    by_id = {b.id: b for b in model.boundaries}
+    ok = {b.id: np.isfinite(b.t) for b in model.boundaries}
+    for sec in model.sections:
+        ks = _stations_of(model, sec)
+        for lane in range(len(sec.boundary_ids) - 1):
+            w = _lane_width(model, sec, lane, ks)
+            normal = w[np.isfinite(w) & (w <= cfg.max_lane_width_m)]
+            if not len(normal):
+                continue
+            bad = ks[~(w <= float(np.median(normal)) + cfg.branch_widening_m)]
+            for bid in sec.boundary_ids[lane : lane + 2]:
+                ok[bid][bad] = False
+    return [_world(model, bid, np.flatnonzero(ok[bid])) for bid in by_id]
+
+
+def _subset(cloud: MarkingCloud, sel: np.ndarray) -> MarkingCloud:
+    return MarkingCloud(xyz=np.asarray(cloud.xyz)[sel], intensity=np.asarray(cloud.intensity)[sel],
+                        scan_index=np.asarray(cloud.scan_index)[sel], time=np.asarray(cloud.time)[sel],
+                        planes=cloud.planes, trajectory=cloud.trajectory, origin=cloud.origin)
+
+
+def _far_from(xy: np.ndarray, lines: list[np.ndarray], dist: float) -> np.ndarray:
+    pts = [p for p in lines if len(p)]
+    if not pts:
+        return np.ones(len(xy), dtype=bool)
+    d, _ = cKDTree(np.vstack(pts)).query(xy, distance_upper_bound=dist)
+    return ~np.isfinite(d)
+
+
+def reframe_start(model: LaneModel, point: np.ndarray, heading: float, blend_m: float = 40.0,
+                  at_end: bool = False) -> LaneModel:
+    """Move the reference line's start (end) onto `point` with `heading`, blended out over `blend_m`.
+
+    The boundaries stay where they are in the world: their offsets are taken against the moved line.
+    """
+    ref = np.asarray(model.reference, dtype=np.float64).copy()
+    s = np.asarray(model.s, dtype=np.float64)
+    _, old, normal_old = _frame(model)
+    dist = (s - s[0]) if not at_end else (s[-1] - s)
+    u = np.clip(dist / max(min(blend_m, float(s[-1] - s[0])), 1e-6), 0.0, 1.0)
+    fade = 1.0 - u * u * (3.0 - 2.0 * u)
+    k_end = 0 if not at_end else len(s) - 1
+    shift = np.asarray(point, dtype=np.float64)[:2] - old[k_end]
+    direction = np.array([np.cos(heading), np.sin(heading)])
+    sign = 1.0 if not at_end else -1.0
+    # a linear term turns the start tangent onto `heading` (within the blend, tangent errors of a few degrees)
+    tangent = np.gradient(old, s, axis=0)[k_end]
+    turn = direction * np.linalg.norm(tangent) - tangent
+    ramp = dist * fade * fade
+    ref[:, :2] = old + fade[:, None] * shift + sign * ramp[:, None] * turn[None, :]
+    out = replace(model, reference=ref, boundaries=[])
+    _, new, normal_new = _frame(out)
+    boundaries = []
+    for b in model.boundaries:
+        world = old + normal_old * np.asarray(b.t)[:, None]
+        boundaries.append(replace(b, t=np.sum((world - new) * normal_new, axis=1)))
+    out.boundaries = boundaries
+    out.sections = [replace(sec) for sec in model.sections]
+    return out
+
+
+def _road_end(model: LaneModel, at_end: bool) -> tuple[np.ndarray, float]:
+    k = len(model.s) - 1 if at_end else 0
+    return np.asarray(model.reference)[k, :2], _heading(model, k)
+
+
+def build_network(cloud: MarkingCloud, main: LaneModel, lanes_cfg: LanesConfig, markings_cfg: MarkingsConfig,
+                  where: str = "marking cloud") -> RoadNetwork:
+    """The road `main` cut at its first junction, with the branch built from the remaining markings."""
+    from lidar2xodr.lanes import build_lane_model
+    from lidar2xodr.markings import find_candidates
+
+    # a ramp is short and seen from afar: its lanes need only half the usual stable stretch
+    short = lanes_cfg.model_copy(update={"min_section_length_m": 0.5 * lanes_cfg.min_section_length_m})
+
+    def lanes_of(sub: MarkingCloud, what: str) -> LaneModel:
+        return build_lane_model(sub, find_candidates(sub.xyz, markings_cfg), short, where=f"{where} ({what})")
+
+    events = find_events(main, lanes_cfg)
+    if not events:
+        return RoadNetwork([main], [], list(main.warnings))
+    ev = events[0]
+    warnings = list(main.warnings)
+    sec = main.sections[ev.section]
+    lost = sec.boundary_ids[ev.lane + 1] if ev.side == "right" else sec.boundary_ids[ev.lane]
+    last = len(main.s) - 1
+    diverge = ev.kind == "diverge"
+    if diverge:
+        road_a = slice_model(main, 0, ev.k)
+        road_b = slice_model(main, ev.k, last, drop={lost})
+        kept = road_b
+    else:
+        road_a = slice_model(main, 0, ev.k, drop={lost})
+        road_b = slice_model(main, ev.k, last)
+        kept = road_a
+    if len(road_a.s) < 5 or len(road_b.s) < 5 or not road_a.sections or not road_b.sections:
+        return RoadNetwork([main], [], warnings)
+    label = f"the lane {'leaving' if diverge else 'joining'} on the {ev.side} at s {main.s[ev.k]:.0f} m"
+    branch: LaneModel | None = None
+    why = ""
+    xy = np.asarray(cloud.xyz)[:, :2]
+    sub = _branch_cloud(cloud, main, ev, _normal_lines(kept, lanes_cfg), lanes_cfg)
+    if len(sub.xyz) < 50:
+        why = "too few markings beside the road there"
+    else:
+        try:
+            branch, why = _orient_and_cut(lanes_of(sub, "branch"), main, ev, lanes_cfg)
+        except InputError as exc:
+            why = exc.problem
+    rest = road_b if diverge else road_a
+    messy = [e for e in find_events(rest, lanes_cfg) if (e.k < 50 if diverge else e.k > len(rest.s) - 50)]
+    if branch is not None and messy:
+        # both sides leave the measured axis (a split): the continuing carriageway is measured again
+        # from its own markings, without the branch's
+        k_main, _ = _project(main, xy)
+        side = (k_main >= ev.k - int(_GORE_M)) if diverge else (k_main <= ev.k + int(_GORE_M))
+        far = _far_from(xy, [_world(branch, b.id, np.flatnonzero(np.isfinite(b.t))) for b in branch.boundaries],
+                        lanes_cfg.assign_distance_m)
+        try:
+            again, why_again = _orient_and_cut(lanes_of(_subset(cloud, np.flatnonzero(side & far)), "continuing road"),
+                                               main, replace(ev, lane=_middle_lane(main, ev)), lanes_cfg)
+        except InputError as exc:
+            again, why_again = None, exc.problem
+        if again is not None:
+            point, heading = _road_end(road_a, at_end=True) if diverge else _road_end(road_b, at_end=False)
+            if diverge:
+                road_b = reframe_start(again, point, heading)
+            else:
+                road_a = reframe_start(again, point, heading, at_end=True)
+        else:
+            warnings.append(f"the carriageway beyond s {main.s[ev.k]:.0f} m could not be measured again "
+                            f"({why_again}); it keeps the first measurement")
+    roads = [road_a, road_b]
+    links = [RoadLink(0, 1, _lane_links(road_a, road_b), continuation=True)]
+    if branch is None:
+        warnings.append(f"{label} was not built as a road of its own ({why}): it ends at the junction")
+        return RoadNetwork(roads, links, warnings + _further(road_b if diverge else road_a, lanes_cfg))
+    roads.append(branch)
+    at = 0 if diverge else -1
+    branch_lane = 0 if ev.side == "right" else len(branch.sections[at].boundary_ids) - 2
+    if diverge:
+        links.append(RoadLink(0, 2, [(ev.lane, branch_lane)], continuation=False))
+    else:
+        links.append(RoadLink(2, 1, [(branch_lane, ev.lane)], continuation=False))
+    n_lanes = max(len(sc.boundary_ids) - 1 for sc in branch.sections)
+    warnings.append(f"{label}: a {'branch' if diverge else 'ramp'} of {n_lanes} lane(s), {branch.s[-1]:.0f} m, "
+                    "joined by a junction")
+    return RoadNetwork(roads, links, warnings + _further(road_b if diverge else road_a, lanes_cfg))
+
+
+def _further(rest: LaneModel, cfg: LanesConfig) -> list[str]:
+    more = find_events(rest, cfg)
+    if not more:
+        return []
+    return [f"{len(more)} further lane(s) leaving or joining the road are not modelled as junctions (only the first "
+            "one is): " + ", ".join(f"{e.kind} on the {e.side}" for e in more)]
+
+
+def _middle_lane(main: LaneModel, ev: Event) -> int:
+    """The lane next to the lost one on the road's side (the continuing carriageway's junction lane)."""
+    n = len(main.sections[ev.section].boundary_ids) - 1
+    return max(0, min(n - 1, ev.lane - 1 if ev.side == "right" else ev.lane + 1))
