@@ -349,6 +349,23 @@ def test_radius_outliers_matches_brute_force() -> None:
     assert radius_outliers(np.zeros((0, 3)), 0.5, 4).shape == (0,)
 
 
+@pytest.mark.parametrize("min_neighbors", [1, 4, 7])
+def test_radius_outliers_dense_cell_shortcut_matches_brute_force(min_neighbors: int) -> None:
+    """Clumps that fill a cell, thin lines across cell borders, a lattice just under and over the radius."""
+    rng = np.random.default_rng(min_neighbors)
+    clumps = rng.normal(0, 0.08, (40, 6, 3)) + rng.uniform(-30, 30, (40, 1, 3))
+    line = np.column_stack([np.arange(0, 20, 0.24), np.full(84, 0.1443), np.zeros(84)])
+    g = np.arange(4)
+    lattice = np.stack(np.meshgrid(g, g, g), axis=-1).reshape(-1, 3).astype(float)
+    pts = np.vstack([clumps.reshape(-1, 3), line, lattice * 0.4999 + 100.0, lattice * 0.5001 + 200.0,
+                     1000.0 + rng.uniform(0, 3, (300, 3))])
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=2)
+    expected = ((d < 0.5).sum(axis=1) - 1) >= min_neighbors
+    assert np.array_equal(radius_outliers(pts, 0.5, min_neighbors), expected)
+    assert np.array_equal(radius_outliers(pts, 0.5, min_neighbors, workers=2), expected)
+    assert expected.any() and not expected.all()
+
+
 # --- end to end on the synthetic drive --------------------------------------------------------
 
 
