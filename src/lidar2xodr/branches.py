@@ -111,11 +111,14 @@ def _is_new(model: LaneModel, j: int, lane: int) -> bool:
     """No lane of the previous section overlaps this one by half its width at the section change."""
     by_id = {b.id: b for b in model.boundaries}
     sec, prev = model.sections[j], model.sections[j - 1]
-    k0 = _stations_of(model, sec)[0]
-    kp = _stations_of(model, prev)[-1]
-    left, right = by_id[sec.boundary_ids[lane]].t[k0], by_id[sec.boundary_ids[lane + 1]].t[k0]
+    k0 = int(_stations_of(model, sec)[0])
+    left, right = by_id[sec.boundary_ids[lane]].t[k0 + 1], by_id[sec.boundary_ids[lane + 1]].t[k0 + 1]
     for i in range(len(prev.boundary_ids) - 1):
-        pl, pr = by_id[prev.boundary_ids[i]].t[kp], by_id[prev.boundary_ids[i + 1]].t[kp]
+        tl, tr = by_id[prev.boundary_ids[i]].t[: k0 + 1], by_id[prev.boundary_ids[i + 1]].t[: k0 + 1]
+        both = np.flatnonzero(np.isfinite(tl) & np.isfinite(tr))
+        if not len(both):
+            continue
+        pl, pr = tl[both[-1]], tr[both[-1]]
         if min(left, pl) - max(right, pr) > 0.5 * (left - right):
             return False
     return True
@@ -207,19 +210,18 @@ def _branch_cloud(cloud: MarkingCloud, main: LaneModel, ev: Event, kept_lines: l
     k, t = _project(main, xy)
     by_id = {b.id: b for b in main.boundaries}
     inner = sec.boundary_ids[ev.lane] if ev.side == "right" else sec.boundary_ids[ev.lane + 1]
-    outer = sec.boundary_ids[ev.lane + 1] if ev.side == "right" else sec.boundary_ids[ev.lane]
     sign = 1.0 if ev.side == "left" else -1.0
     gore = int(round(_GORE_M / max(float(main.s[1] - main.s[0]), 1e-6)))
     ahead = k >= ev.k if ev.kind == "diverge" else k <= ev.k
     t_in = by_id[inner].t[ev.k]
     beside = sign * (t - t_in) > cfg.assign_distance_m
     far = _far_from(xy, kept_lines, cfg.assign_distance_m * 2)
-    take = ahead & beside & far
-    # the lost lane's own lines at the gore, so the branch starts at the junction
-    near_gore = (k >= ev.k - gore) & (k <= ev.k + gore)
-    for bid in (inner, outer):
-        tb = by_id[bid].t[np.clip(k, 0, len(main.s) - 1)]
-        take |= near_gore & (np.abs(t - tb) < cfg.assign_distance_m)
+    # at the gore the branch's inner line is still the road's line: taken from 0.5 m inside it outwards
+    near_gore = (k >= ev.k - 2 * gore) & (k <= ev.k + 2 * gore)
+    take = (ahead & beside & far) | (near_gore & (sign * (t - t_in) > -cfg.assign_distance_m))
+    _, ref, normal = _frame(main)
+    fork = ref[ev.k] + normal[ev.k] * t_in
+    take &= np.linalg.norm(xy - fork, axis=1) <= cfg.branch_window_m
     return _subset(cloud, np.flatnonzero(take))
 
 
@@ -262,11 +264,16 @@ def _orient_and_cut(branch: LaneModel, main: LaneModel, ev: Event, cfg: LanesCon
     return out, ""
 
 
+def _last_finite(t: np.ndarray) -> float:
+    ok = np.flatnonzero(np.isfinite(t))
+    return float(t[ok[-1]]) if len(ok) else float("nan")
+
+
 def _lane_links(prev: LaneModel, nxt: LaneModel) -> list[tuple[int, int]]:
     """Lanes of prev's last section that go on in nxt's first section (by lateral overlap; one frame)."""
     pa, na = prev.sections[-1], nxt.sections[0]
-    tp = {b.id: b.t[-1] for b in prev.boundaries}
-    tn = {b.id: b.t[0] for b in nxt.boundaries}
+    tp = {b.id: _last_finite(b.t) for b in prev.boundaries}
+    tn = {b.id: _last_finite(b.t[::-1]) for b in nxt.boundaries}
     pairs = []
     for i in range(len(pa.boundary_ids) - 1):
         l0, r0 = tp[pa.boundary_ids[i]], tp[pa.boundary_ids[i + 1]]

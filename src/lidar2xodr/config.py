@@ -150,6 +150,9 @@ class LanesConfig(_Section):
                                             "change across it lasts far longer")
     branch_widening_m: float = Field(1.0, description="ours: an outermost lane wider than its median width by this "
                                      "at a section end (start) leaves (joins) the road: a split, exit or merge")
+    branch_window_m: float = Field(120.0, description="ours: a branch is measured from the markings within this "
+                                   "distance of its junction (a sensor beside it sees no farther; clutter beyond "
+                                   "would bend its road axis)")
     branch_min_length_m: float = Field(30.0, description="ours: a leaving or joining lane becomes a road of its own "
                                        "when its markings give lanes over at least this length")
 
