@@ -32,6 +32,7 @@ Rules (parameters in `LanesConfig`):
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -449,3 +450,51 @@ def _middle_lane(main: LaneModel, ev: Event) -> int:
     """The lane next to the lost one on the road's side (the continuing carriageway's junction lane)."""
     n = len(main.sections[ev.section].boundary_ids) - 1
     return max(0, min(n - 1, ev.lane - 1 if ev.side == "right" else ev.lane + 1))
+
+
+# --------------------------------------------------------------------------------------------
+# lanes.json with a network
+
+
+def save_network(network: RoadNetwork, path: str | Path) -> None:
+    """lanes.json: the first road as the single-road format (so any reader of one road works), plus a
+    `network` entry with every road and the junction links when there is more than one road."""
+    from lidar2xodr.lanes import model_dict, save_lanes
+
+    extra = None
+    if len(network.roads) > 1 or network.links:
+        extra = {
+            "roads": [model_dict(r) for r in network.roads],
+            "links": [{"incoming": lk.incoming, "outgoing": lk.outgoing, "lanes": [list(p) for p in lk.lanes],
+                       "continuation": lk.continuation} for lk in network.links],
+            "warnings": list(network.warnings),
+        }
+    save_lanes(network.roads[0], path, network=extra)
+
+
+def load_network(path: str | Path) -> RoadNetwork:
+    """Read lanes.json (with or without a network); InputError naming the file and element when malformed."""
+    import json
+
+    from lidar2xodr.lanes import load_lanes, model_from
+
+    main = load_lanes(path)
+    data = json.loads(Path(path).read_text(encoding="utf-8"))
+    net = data.get("network")
+    if net is None:
+        return RoadNetwork([main], [], list(main.warnings))
+    try:
+        roads = [model_from(r, f"{path} network road {i}") for i, r in enumerate(net["roads"])]
+        links = []
+        for j, lk in enumerate(net["links"]):
+            link = RoadLink(int(lk["incoming"]), int(lk["outgoing"]), [(int(a), int(b)) for a, b in lk["lanes"]],
+                            bool(lk["continuation"]))
+            if not (0 <= link.incoming < len(roads) and 0 <= link.outgoing < len(roads)):
+                raise InputError(f"{path} network link {j}", f"names a road outside 0..{len(roads) - 1}")
+            links.append(link)
+        warnings = [str(w) for w in net["warnings"]]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InputError(path, f"malformed network: missing or wrong field {exc}") from None
+    if not roads:
+        raise InputError(path, "the network has no roads")
+    return RoadNetwork(roads, links, warnings)

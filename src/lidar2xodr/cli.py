@@ -281,8 +281,9 @@ def lanes(
     config: Path | None = ConfigOpt,
 ) -> None:
     """Lanes from markings alone (paper Alg. 1 and 2): candidates, superlines, boundaries, sections."""
+    from lidar2xodr.branches import build_network, save_network
     from lidar2xodr.config import Config
-    from lidar2xodr.lanes import build_lane_model, save_lanes
+    from lidar2xodr.lanes import build_lane_model
     from lidar2xodr.markings import find_candidates
     from lidar2xodr.markings_io import load_markings
 
@@ -292,16 +293,18 @@ def lanes(
         raise InputError(markings, "the marking cloud is empty")
     candidates = find_candidates(cloud.xyz, cfg.markings)
     model = build_lane_model(cloud, candidates, cfg.lanes, where=str(markings))
-    save_lanes(model, output)
+    network = build_network(cloud, model, cfg.lanes, cfg.markings, where=str(markings))
+    save_network(network, output)
     counts = ", ".join(f"{len(sec.boundary_ids) - 1} from {sec.s_start:.0f} m" for sec in model.sections)
     out.print(f"wrote {output}: {model.s[-1]:.0f} m of road, {len(candidates)} candidates, "
-              f"{len(model.boundaries)} boundaries, lanes {counts}", highlight=False)
+              f"{len(model.boundaries)} boundaries, lanes {counts}; {len(network.roads)} road(s) after "
+              f"junctions", highlight=False)
     if report is not None:
         from lidar2xodr.lanes_report import write_lanes_report
 
         for path in write_lanes_report(cloud, model, report):
             out.print(f"wrote {path}", highlight=False)
-    for warning in model.warnings:
+    for warning in network.warnings:
         console.print(f"[yellow]warning:[/] {warning}", highlight=False, soft_wrap=True)
 
 
@@ -317,12 +320,12 @@ def export(
     config: Path | None = ConfigOpt,
 ) -> None:
     """Stage 4 alone: OpenDRIVE from a lane model (paper Alg. 3), checked before it is written."""
+    from lidar2xodr.branches import load_network
     from lidar2xodr.config import Config
-    from lidar2xodr.lanes import load_lanes
     from lidar2xodr.markings_io import load_markings
     from lidar2xodr.pipeline import _verdict_line, write_checked_map
 
-    model = load_lanes(lanes_json)
+    model = load_network(lanes_json)
     planes = load_markings(markings).planes if markings else None
     summary, verdict = write_checked_map(model, planes, Config.load(config), output, allow_invalid, where=lanes_json)
     out.print(f"wrote {output}: {summary.length_m:.0f} m, {summary.pieces} paramPoly3 pieces, "

@@ -1572,12 +1572,21 @@ def _num(a: np.ndarray) -> list:
     )
 
 
-def save_lanes(model: LaneModel, path: str | Path) -> None:
+def save_lanes(model: LaneModel, path: str | Path, network: dict | None = None) -> None:
     """Write the lane model as JSON (format `lidar2xodr.lanes/1`, NaN written as null), atomically.
 
     Each section carries `divider_id` (null: one direction); files written before it existed load
-    with no divider."""
-    data = {
+    with no divider. `network` (from `branches.save_network`) adds the roads and junction links of a
+    carriageway that splits or merges; readers of the single road ignore it."""
+    data = model_dict(model)
+    if network is not None:
+        data["network"] = network
+    write_text(path, json.dumps(data, separators=(",", ":"), sort_keys=True) + "\n")
+
+
+def model_dict(model: LaneModel) -> dict:
+    """The JSON-ready dictionary of one lane model (NaN as null)."""
+    return {
         "format": FORMAT,
         "s": _num(model.s),
         "reference": _num(model.reference),
@@ -1619,7 +1628,6 @@ def save_lanes(model: LaneModel, path: str | Path) -> None:
         },
         "warnings": list(model.warnings),
     }
-    write_text(path, json.dumps(data, separators=(",", ":"), sort_keys=True) + "\n")
 
 
 def _arr(value: object, shape_tail: tuple[int, ...], where: str, name: str) -> np.ndarray:
@@ -1655,6 +1663,11 @@ def load_lanes(path: str | Path) -> LaneModel:
         raise InputError(path, f"cannot read the lane model: {exc}") from None
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise InputError(path, f"not a lane model (expected format {FORMAT!r})")
+    return model_from(data, path)
+
+
+def model_from(data: dict, path: str | Path) -> LaneModel:
+    """A lane model from its dictionary (`model_dict`); InputError naming `path` when malformed."""
     try:
         s = _arr(data["s"], (), str(path), "s")
         ref = _arr(data["reference"], (3,), str(path), "reference")

@@ -20,7 +20,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from lidar2xodr.config import Config
-from lidar2xodr.data import GroundPlanes, LaneModel, MarkingCloud
+from lidar2xodr.data import GroundPlanes, LaneModel, MarkingCloud, RoadNetwork
 from lidar2xodr.errors import InputError, OutputError
 
 
@@ -94,7 +94,9 @@ class BuildPipeline:
             raise InputError(self.drive, "no lane markings found in the drive (nothing bright on the ground)")
         return cloud
 
-    def lanes(self, cloud: MarkingCloud) -> LaneModel:
+    def lanes(self, cloud: MarkingCloud) -> tuple[LaneModel, RoadNetwork]:
+        """The measured carriageway and, where it splits or merges, the roads joined by junctions."""
+        from lidar2xodr.branches import build_network
         from lidar2xodr.lanes import build_lane_model
         from lidar2xodr.markings import find_candidates
 
@@ -102,21 +104,28 @@ class BuildPipeline:
             candidates = find_candidates(cloud.xyz, self.config.markings)
         with self._stage("lanes"):
             model = build_lane_model(cloud, candidates, self.config.lanes)
-        return model
+            network = build_network(cloud, model, self.config.lanes, self.config.markings, where=str(self.drive))
+        return model, network
 
     def run(self) -> BuildResult:
         cloud = self.extract()
-        model = self.lanes(cloud)
+        model, network = self.lanes(cloud)
         summary, verdict = write_checked_map(
-            model, cloud.planes, self.config, self.out, self.allow_invalid, where=self.drive, timings=self.timings
+            network, cloud.planes, self.config, self.out, self.allow_invalid, where=self.drive, timings=self.timings
         )
         if self.keep:
-            self._keep(cloud, model)
-        result = BuildResult(map_path=self.out, timings=self.timings, check=verdict, warnings=list(model.warnings))
+            self._keep(cloud, network)
+        result = BuildResult(map_path=self.out, timings=self.timings, check=verdict, warnings=list(network.warnings))
         result.summary = {
             "length_m": float(model.s[-1] - model.s[0]) if len(model.s) else 0.0,
             "boundaries": len(model.boundaries),
             "sections": [len(sec.boundary_ids) - 1 for sec in model.sections],
+            "roads": [
+                {"length_m": round(float(r.s[-1] - r.s[0]), 1),
+                 "lanes": [len(sc.boundary_ids) - 1 for sc in r.sections]}
+                for r in network.roads
+            ],
+            "junction_links": len(network.links),
             "marking_points": int(len(cloud.xyz)),
             "scans": int(len(cloud.planes.times)),
             "export": summary.__dict__ if hasattr(summary, "__dict__") else str(summary),
@@ -157,17 +166,17 @@ class BuildPipeline:
         summary = export_scenario(cloud.trajectory, tracks, self.out, self.scenario, self.config)
         return {"path": self.scenario, "summary": summary, "tracks": tracks, "ego": cloud.trajectory}
 
-    def _keep(self, cloud: MarkingCloud, model: LaneModel) -> None:
-        from lidar2xodr.lanes import save_lanes
+    def _keep(self, cloud: MarkingCloud, network: RoadNetwork) -> None:
+        from lidar2xodr.branches import save_network
         from lidar2xodr.markings_io import save_markings
 
         assert self.keep is not None
         save_markings(cloud, self.keep / "markings.ply")
-        save_lanes(model, self.keep / "lanes.json")
+        save_network(network, self.keep / "lanes.json")
 
 
 def write_checked_map(
-    model: LaneModel,
+    model: LaneModel | RoadNetwork,
     planes: GroundPlanes | None,
     config: Config,
     out: Path,
@@ -180,8 +189,8 @@ def write_checked_map(
     A map that fails the checks is written only with `allow_invalid`; otherwise nothing is
     written and the error names `where` the model came from. Returns (export summary, verdict).
     """
+    from lidar2xodr import export_opendrive as exporter
     from lidar2xodr.check import check_file
-    from lidar2xodr.export_opendrive import export_opendrive
 
     timings = timings if timings is not None else {}
     out = Path(out)
@@ -192,7 +201,11 @@ def write_checked_map(
     with tempfile.TemporaryDirectory(prefix=".lidar2xodr-", dir=out.parent) as tmp:
         tmp_map = Path(tmp) / out.name
         t0 = time.perf_counter()
-        summary = export_opendrive(model, planes, config.export, tmp_map)
+        if isinstance(model, RoadNetwork) and (len(model.roads) > 1 or model.links):
+            summary = exporter.export_network(model, planes, config.export, tmp_map)
+        else:
+            single = model.roads[0] if isinstance(model, RoadNetwork) else model
+            summary = exporter.export_opendrive(single, planes, config.export, tmp_map)
         t1 = time.perf_counter()
         verdict = check_file(tmp_map)
         timings.update(export=t1 - t0, check=time.perf_counter() - t1)

@@ -1,0 +1,90 @@
+"""Junction events, slicing and the network file of `branches` on hand-made lane models."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lidar2xodr.branches import (
+    build_network,
+    find_events,
+    flip_model,
+    load_network,
+    reframe_start,
+    save_network,
+    slice_model,
+)
+from lidar2xodr.config import Config
+from lidar2xodr.data import Boundary, LaneModel, LaneSection, RoadLink, RoadNetwork
+from lidar2xodr.errors import InputError
+
+
+def _road(widen_from: float | None = None, length: float = 300.0) -> LaneModel:
+    """Straight 3-boundary road along x; the right lane widens (diverges) from `widen_from`."""
+    s = np.arange(0.0, length + 1e-9, 1.0)
+    ref = np.stack([s, np.zeros_like(s), np.zeros_like(s)], axis=1)
+    right = np.full_like(s, -3.5)
+    sections = [LaneSection(0.0, length, [0, 1, 2])]
+    if widen_from is not None:
+        grow = s > widen_from
+        right[grow] -= 0.004 * (s[grow] - widen_from) ** 2
+        end = float(s[np.flatnonzero(right < -12.0)[0]])
+        right[s > end] = np.nan
+        sections = [LaneSection(0.0, end, [0, 1, 2]), LaneSection(end, length, [0, 1])]
+    bounds = [Boundary(0, np.full_like(s, 3.5)), Boundary(1, np.zeros_like(s), "broken"), Boundary(2, right)]
+    return LaneModel(s=s, reference=ref, boundaries=bounds, sections=sections)
+
+
+def test_a_diverging_lane_is_an_event_at_its_gore_and_a_steady_road_is_none() -> None:
+    cfg = Config().lanes
+    assert find_events(_road(), cfg) == []
+    events = find_events(_road(widen_from=150.0), cfg)
+    assert len(events) == 1
+    ev = events[0]
+    assert (ev.kind, ev.side, ev.lane) == ("diverge", "right", 1)
+    assert 145 <= ev.k <= 160  # where the width was last normal (3.5 + 0.3 m)
+
+
+def test_slice_and_flip_keep_the_geometry() -> None:
+    road = _road()
+    part = slice_model(road, 100, 200, drop={2})
+    assert part.s[0] == 0.0 and part.s[-1] == 100.0
+    assert [sec.boundary_ids for sec in part.sections] == [[0, 1]]
+    assert np.allclose(part.reference[:, 0], np.arange(100.0, 201.0))
+    flipped = flip_model(road)
+    assert flipped.sections[0].boundary_ids == [2, 1, 0]
+    by_id = {b.id: b for b in flipped.boundaries}
+    assert np.allclose(by_id[2].t, 3.5) and np.allclose(by_id[0].t, -3.5)
+    assert np.allclose(flipped.reference[0, :2], road.reference[-1, :2])
+
+
+def test_reframe_moves_the_start_and_keeps_the_boundaries_in_the_world() -> None:
+    road = _road()
+    moved = reframe_start(road, np.array([0.0, 1.0]), 0.0, blend_m=40.0)
+    assert np.allclose(moved.reference[0, :2], [0.0, 1.0], atol=1e-9)
+    assert np.allclose(moved.reference[60:, :2], road.reference[60:, :2])
+    by_id = {b.id: b for b in moved.boundaries}
+    assert abs(by_id[0].t[0] - 2.5) < 1e-3  # the line at y = 3.5 is 2.5 m left of y = 1 (same-station offset)
+    assert np.allclose(by_id[0].t[60:], 3.5)
+
+
+def test_network_file_round_trip_and_single_road_files(tmp_path) -> None:
+    a, b = slice_model(_road(), 0, 150), slice_model(_road(), 150, 300, drop={2})
+    net = RoadNetwork([a, b], [RoadLink(0, 1, [(0, 0)], True)], ["w"])
+    path = tmp_path / "lanes.json"
+    save_network(net, path)
+    back = load_network(path)
+    assert len(back.roads) == 2 and back.links == net.links and back.warnings == ["w"]
+    assert np.allclose(back.roads[1].reference, b.reference)
+    save_network(RoadNetwork([a]), path)
+    assert len(load_network(path).roads) == 1
+    path.write_text(path.read_text().replace('"format"', '"fmt"'))
+    with pytest.raises(InputError):
+        load_network(path)
+
+
+def test_no_event_leaves_the_road_whole() -> None:
+    cfg = Config()
+    road = _road()
+    net = build_network(None, road, cfg.lanes, cfg.markings)  # type: ignore[arg-type]
+    assert net.roads == [road] and net.links == []
