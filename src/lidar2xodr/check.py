@@ -14,7 +14,11 @@ Two parts:
   and heading kink (rad) between the end of each plan-view geometry and the start of the next, and for
   every paramPoly3 the difference between its declared length and the arc length of the curve it
   describes (integrated numerically; for pRange=normalized the declared length is the only arc-length
-  information a reader has, so a mismatch distorts every s coordinate on that piece).
+  information a reader has, so a mismatch distorts every s coordinate on that piece). Also the largest
+  gap between the borders of lanes linked across a junction (`max_junction_gap_m`): for every laneLink
+  the two borders of its `from` lane at the incoming road's end that touches the junction against those
+  of its `to` lane at the connecting (linked) road's contact point, in 3D (reported, not judged:
+  overlap zones of real maps may be wide on purpose).
 
 Verdict: `ok` is False when the ASAM checker reports at least one error, when the project's
 OpenDRIVE reader cannot evaluate the geometry (`continuity.error`), or a leap exceeds
@@ -165,6 +169,54 @@ def _wrap(a: float) -> float:
     return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
+def _contact_s(road: Any, junction_id: str, contact: str | None) -> float | None:
+    """Station of the road end that touches the junction (the contact point when given)."""
+    if contact in ("start", "end"):
+        return 0.0 if contact == "start" else float(road.length)
+    for link, s in ((road.successor, float(road.length)), (road.predecessor, 0.0)):
+        if link is not None and link.element_type == "junction" and link.element_id == junction_id:
+            return s
+    return None
+
+
+def _lane_border_points(road: Any, s: float, lane_id: int) -> np.ndarray:
+    """World points (2, 3) of the inner and outer border of a lane at station s (NaN when it is absent)."""
+    inner = lane_id - (1 if lane_id > 0 else -1)
+    t = np.array([road.border_t(s, inner)[0], road.border_t(s, lane_id)[0]])
+    if not np.all(np.isfinite(t)):
+        return np.full((2, 3), np.nan)
+    return road.to_world(np.array([s, s]), t)
+
+
+def junction_gaps(odr: Any) -> dict[str, Any]:
+    """Largest distance between the borders of lanes linked across junctions, and where it is.
+
+    Inner and outer borders are matched as they are or swapped, whichever fits (roads may meet
+    head to head). Links naming missing roads or lanes are skipped.
+    """
+    worst: dict[str, Any] | None = None
+    count = 0
+    for jid, junction in odr.junctions.items():
+        for conn in junction.connections:
+            inc, out = odr.roads.get(conn.incoming_road), odr.roads.get(conn.connecting_road)
+            if inc is None or out is None or not conn.lane_links:
+                continue
+            s_in, s_out = _contact_s(inc, jid, None), _contact_s(out, jid, conn.contact_point)
+            if s_in is None or s_out is None:
+                continue
+            for lane_from, lane_to in conn.lane_links:
+                a = _lane_border_points(inc, s_in, lane_from)
+                b = _lane_border_points(out, s_out, lane_to)
+                if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+                    continue
+                gap = min(np.linalg.norm(a - b, axis=1).max(), np.linalg.norm(a - b[::-1], axis=1).max())
+                count += 1
+                if worst is None or gap > worst["value"]:
+                    worst = {"junction": jid, "connection": conn.id, "from": lane_from, "to": lane_to,
+                             "value": float(gap)}
+    return {"max_junction_gap_m": worst["value"] if worst else 0.0, "worst": worst, "lane_links": count}
+
+
 def continuity(odr: Any) -> dict[str, Any]:
     """Largest geometry-to-geometry leap and kink, and paramPoly3 length errors, over all roads."""
     worst: dict[str, dict[str, Any]] = {}
@@ -195,11 +247,15 @@ def continuity(odr: Any) -> dict[str, Any]:
         if road_bad:
             over.append(road_id)
     top = {k: v["value"] for k, v in worst.items()}
+    gaps = junction_gaps(odr)
+    if gaps["worst"] is not None:
+        worst["junction_gap"] = gaps["worst"]
     return {
         "max_leap_m": top.get("leap", 0.0),
         "max_kink_rad": top.get("kink", 0.0),
         "max_length_error_m": top.get("length", 0.0),
         "max_length_error_rel": top.get("length_rel", 0.0),
+        "max_junction_gap_m": gaps["max_junction_gap_m"],
         "worst": {k: worst[k] for k in sorted(worst)},
         "roads_over_limit": over,
         "leap_limit_m": LEAP_LIMIT_M,
@@ -256,6 +312,8 @@ def print_check(result: dict[str, Any], console: Console, max_issues: int = 20) 
         table.add_row("largest geometry leap (m)", f"{cont['max_leap_m']:.4f}")
         table.add_row("largest heading kink (rad)", f"{cont['max_kink_rad']:.4f}")
         table.add_row("largest paramPoly3 length error (m)", f"{cont['max_length_error_m']:.4f}")
+        if "junction_gap" in cont.get("worst", {}):
+            table.add_row("largest lane border gap across a junction (m)", f"{cont['max_junction_gap_m']:.4f}")
     console.print(table)
     groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
     for issue in asam["issues"]:

@@ -176,6 +176,8 @@ class ExportConfig(_Section):
     superelevation_median_scans: int = Field(9, description="ours: running median over the per-scan roll angles")
     superelevation_smoothing: float = Field(0.01, description="ours: P-spline penalty of the superelevation fit")
     plane_max_offset_m: float = Field(15.0, description="ours: ground planes farther from the reference are ignored")
+    junction_blend_m: float = Field(30.0, description="ours: a branch road is bent onto the road it leaves or joins "
+                                    "over this length from the junction (or its whole length if shorter)")
 
 
 class EvaluationConfig(_Section):

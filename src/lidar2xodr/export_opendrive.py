@@ -68,8 +68,9 @@ through a subclass so scenariogeneration does not replace it by its own quadratu
 from __future__ import annotations
 
 import math
+import tempfile
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -81,7 +82,7 @@ from scipy.ndimage import median_filter
 from scipy.spatial import cKDTree
 
 from lidar2xodr.config import ExportConfig
-from lidar2xodr.data import Boundary, GroundPlanes, LaneModel
+from lidar2xodr.data import Boundary, GroundPlanes, LaneModel, RoadLink, RoadNetwork
 from lidar2xodr.errors import InputError
 from lidar2xodr.fileio import write_bytes
 
@@ -112,6 +113,9 @@ class ExportSummary:
     max_length_error_m: float
     max_reference_dev_m: float
     max_border_dev_m: float
+    roads: int = 1
+    junctions: int = 0
+    max_junction_gap_m: float = 0.0
 
 
 # --------------------------------------------------------------------------------------------
@@ -197,12 +201,18 @@ def _hermite(p: np.ndarray) -> np.ndarray:
     return np.stack([2 * p3 - 3 * p2 + 1, p3 - 2 * p2 + p, 3 * p2 - 2 * p3, p3 - p2], axis=1)
 
 
-def _fit_hermite(s: np.ndarray, xy: np.ndarray, breaks: np.ndarray, cfg: ExportConfig) -> tuple[np.ndarray, ...]:
+Pose = tuple[float, float, float]  # x, y, heading
+
+
+def _fit_hermite(s: np.ndarray, xy: np.ndarray, breaks: np.ndarray, cfg: ExportConfig,
+                 start: Pose | None = None, end: Pose | None = None, where: str = _WHERE) -> tuple[np.ndarray, ...]:
     """One least-squares solve for positions P and tangents D (per metre of station) at every break.
 
     Piece k is the Hermite cubic of (P_k, D_k, P_k+1, D_k+1), so neighbours share end point and
     tangent by construction. Its residuals cover its own stations plus the look-back and look-ahead
     (its cubic extrapolated), and the samples nearest its ends are weighted up (paper Alg. 3).
+    `start` / `end` fix the first / last break's position and tangent direction exactly (a road
+    joined to another at a junction; equality constraints, so x and y are solved together).
     """
     n = len(breaks) - 1
     look = cfg.look_fraction * cfg.piece_length_m
@@ -221,19 +231,47 @@ def _fit_hermite(s: np.ndarray, xy: np.ndarray, breaks: np.ndarray, cfg: ExportC
         cols = [2 * k, 2 * k + 1, 2 * k + 2, 2 * k + 3]  # P_k, D_k, P_k+1, D_k+1
         normal[np.ix_(cols, cols)] += basis.T @ (basis * w[:, None])
         rhs[cols] += basis.T @ ((xy[m] - origin) * w[:, None])
-    sol = np.linalg.solve(normal, rhs)  # x and y share the normal matrix
-    return sol[0::2] + origin, sol[1::2]
+    if start is None and end is None:
+        sol = np.linalg.solve(normal, rhs)  # x and y share the normal matrix
+        return sol[0::2] + origin, sol[1::2]
+    size = 2 * (n + 1)
+    lhs = np.zeros((2 * size, 2 * size))
+    lhs[:size, :size] = lhs[size:, size:] = normal
+    rows: list[np.ndarray] = []
+    vals: list[float] = []
+    fixed = [(i, pose) for i, pose in ((0, start), (n, end)) if pose is not None]
+    for i, (x, y, h) in fixed:
+        for col, val in ((2 * i, x - origin[0]), (size + 2 * i, y - origin[1])):
+            row = np.zeros(2 * size)
+            row[col] = 1.0
+            rows.append(row)
+            vals.append(val)
+        row = np.zeros(2 * size)
+        row[2 * i + 1], row[size + 2 * i + 1] = -math.sin(h), math.cos(h)  # tangent along the heading
+        rows.append(row)
+        vals.append(0.0)
+    con = np.array(rows)
+    kkt = np.block([[lhs, con.T], [con, np.zeros((len(rows), len(rows)))]])
+    sol = np.linalg.solve(kkt, np.r_[rhs[:, 0], rhs[:, 1], vals])
+    pos = np.stack([sol[0:size:2], sol[size:2 * size:2]], axis=1) + origin
+    tan = np.stack([sol[1:size:2], sol[size + 1:2 * size:2]], axis=1)
+    for i, (_, _, h) in fixed:
+        if tan[i, 0] * math.cos(h) + tan[i, 1] * math.sin(h) <= 0.0:
+            raise InputError(where, f"the road runs against the road it joins at its {'end' if i else 'start'}")
+    return pos, tan
 
 
-def _fit_plan(s: np.ndarray, xy: np.ndarray, breaks: np.ndarray, cfg: ExportConfig) -> _Plan:
+def _fit_plan(s: np.ndarray, xy: np.ndarray, breaks: np.ndarray, cfg: ExportConfig,
+              start_pose: Pose | None = None, end_pose: Pose | None = None, where: str = _WHERE) -> _Plan:
     """Hermite fit, then each piece written in the frame of its start tangent, chained on the written numbers.
 
     Piece k+1 starts at the end of piece k as a reader evaluates the written attributes, with its
-    heading, so rounding never opens a gap or a kink.
+    heading, so rounding never opens a gap or a kink. A `start_pose` is written as given (the exact
+    end of the road this one continues); an `end_pose` is met to rounding (~1e-10 m).
     """
-    pos, tan = _fit_hermite(s, xy, breaks, cfg)
+    pos, tan = _fit_hermite(s, xy, breaks, cfg, start_pose, end_pose, where)
     rows: list[tuple[float, float, float, float, float, np.ndarray, np.ndarray]] = []
-    start = (float(pos[0, 0]), float(pos[0, 1]), math.atan2(tan[0, 1], tan[0, 0]))
+    start = start_pose or (float(pos[0, 0]), float(pos[0, 1]), math.atan2(tan[0, 1], tan[0, 0]))
     s_odr = 0.0
     for k in range(len(breaks) - 1):
         span = breaks[k + 1] - breaks[k]
@@ -274,11 +312,11 @@ class _Records:
 
 
 def _spline_records(x: np.ndarray, y: np.ndarray, breaks: np.ndarray, smooth: float = _GEOMETRY_SMOOTH,
-                    constraints: tuple[tuple[float, float], ...] = (), c1: bool = False) -> _Records:
+                    constraints: tuple[tuple[float, ...], ...] = (), c1: bool = False) -> _Records:
     """Least-squares cubic B-spline on `breaks` with a P-spline penalty and equality constraints.
 
-    C2 at the breaks, or only C1 with `c1` (double interior knots). Each constraint is (x, value).
-    Returns one record per break interval.
+    C2 at the breaks, or only C1 with `c1` (double interior knots). Each constraint is (x, value)
+    or (x, value, 1) for the first derivative. Returns one record per break interval.
     """
     inner = np.repeat(breaks[1:-1], 2 if c1 else 1)
     knots = np.r_[[breaks[0]] * 4, inner, [breaks[-1]] * 4]
@@ -291,6 +329,9 @@ def _spline_records(x: np.ndarray, y: np.ndarray, breaks: np.ndarray, smooth: fl
     if constraints:
         cx = np.clip([c[0] for c in constraints], breaks[0], breaks[-1])
         crow = BSpline.design_matrix(cx, knots, 3).toarray()
+        slope = np.array([len(c) > 2 and c[2] == 1 for c in constraints])
+        if slope.any():
+            crow[slope] = BSpline(knots, np.eye(nb), 3).derivative()(cx[slope])
         cval = np.array([c[1] for c in constraints])
         kkt = np.block([[lhs, crow.T], [crow, np.zeros((len(cval), len(cval)))]])
         try:
@@ -394,13 +435,29 @@ def _link(prev_iv: np.ndarray, next_iv: np.ndarray) -> dict[int, int]:
     return links
 
 
+@dataclass
+class _LaneEnd:
+    """Lane constraints at a road end that lies in a junction (lane indices of the end section).
+
+    `zero`: lanes linked to nothing there; they start (end) at width 0 and open along the taper.
+    `widths`: lanes that must have this width there. `border`: (boundary position, t) the laneOffset
+    must produce there, given the widths.
+    """
+
+    zero: set[int]
+    widths: dict[int, float] = field(default_factory=dict)
+    border: tuple[int, float] | None = None
+
+
 def _lane_fit(grid_s: np.ndarray, t_data: dict[int, np.ndarray],
               sections: list[tuple[float, float, list[int], int]],
-              cfg: ExportConfig) -> tuple[_Records, list[_SectionFit]]:
+              cfg: ExportConfig, start: _LaneEnd | None = None, end: _LaneEnd | None = None,
+              where: str = _WHERE) -> tuple[_Records, list[_SectionFit]]:
     """laneOffset and per-section widths from the boundaries' t on the common station grid.
 
     Each section names the position of its centre boundary (lane 0) in its boundary list. Lanes are
     linked only to lanes on the same side of lane 0 (the two directions never continue each other).
+    `start` / `end` constrain the road's first / last cross-section where it meets a junction.
     """
     masks = [(grid_s >= s0 - 1e-9) & (grid_s <= s1 + 1e-9) for s0, s1, _, _ in sections]
     targets: list[np.ndarray] = []  # per section: (n_boundaries, n_samples)
@@ -410,12 +467,12 @@ def _lane_fit(grid_s: np.ndarray, t_data: dict[int, np.ndarray],
             t = t_data[bid][m]
             ok = np.isfinite(t)
             if ok.sum() < 2:
-                raise InputError(_WHERE, f"boundary {bid} has no offsets in lane section {j} "
+                raise InputError(where, f"boundary {bid} has no offsets in lane section {j} "
                                          f"(s {s0:.1f}-{s1:.1f} m of the written road)")
             rows.append(np.interp(grid_s[m], grid_s[m][ok], t[ok]))
         arr = np.array(rows)
         if np.any(np.median(-np.diff(arr, axis=0), axis=1) <= 0):
-            raise InputError(_WHERE, f"lane section {j}: boundaries {ids} are not ordered left to right")
+            raise InputError(where, f"lane section {j}: boundaries {ids} are not ordered left to right")
         targets.append(arr)
 
     def edges(j: int, at_end: bool) -> np.ndarray:
@@ -435,6 +492,7 @@ def _lane_fit(grid_s: np.ndarray, t_data: dict[int, np.ndarray],
     offset_s: list[np.ndarray] = []
     offset_t: list[np.ndarray] = []
     fits: list[_SectionFit] = []
+    last = len(sections) - 1
     for j, ((s0, s1, ids, c), m) in enumerate(zip(sections, masks, strict=True)):
         s = grid_s[m]
         arr = targets[j]
@@ -445,15 +503,21 @@ def _lane_fit(grid_s: np.ndarray, t_data: dict[int, np.ndarray],
         for i in range(len(ids) - 1):
             w = arr[i] - arr[i + 1]
             cons: list[tuple[float, float]] = []
-            if j > 0 and i not in preds[j]:
+            opens = j > 0 and i not in preds[j] or j == 0 and start is not None and i in start.zero
+            ends = j < last and i not in succs[j] or j == last and end is not None and i in end.zero
+            if opens:
                 w = _taper(w, s - s0, taper)
                 cons.append((s0, 0.0))
             elif j > 0:
                 cons.append((s0, float(fits[j - 1].widths[preds[j][i]](np.array([s0]))[0])))
-            if j < len(sections) - 1 and i not in succs[j]:
+            elif start is not None and i in start.widths:
+                cons.append((s0, start.widths[i]))
+            if ends:
                 w = _taper(w, s1 - s, taper)
                 cons.append((s1, 0.0))
-            tapered = j > 0 and i not in preds[j] or j < len(sections) - 1 and i not in succs[j]
+            elif j == last and end is not None and i in end.widths:
+                cons.append((s1, end.widths[i]))
+            tapered = opens or ends
             if tapered and i == c:
                 lead = arr[c + 1] + w
             elif tapered and i == c - 1:
@@ -463,7 +527,13 @@ def _lane_fit(grid_s: np.ndarray, t_data: dict[int, np.ndarray],
         offset_s.append(s)
         offset_t.append(lead)
     all_breaks = np.unique(np.concatenate([_uniform_breaks(a, b, cfg.lane_record_m) for a, b, _, _ in sections]))
-    offset = _spline_records(np.concatenate(offset_s), np.concatenate(offset_t), all_breaks, c1=True)
+    ocons: list[tuple[float, float]] = []
+    for spec, fit, at in ((start, fits[0], sections[0][0]), (end, fits[-1], sections[-1][1])):
+        if spec is not None and spec.border is not None:
+            pos, t = spec.border
+            ocons.append((at, t - float(fit.borders(np.zeros(1), np.array([at]))[pos][0])))
+    offset = _spline_records(np.concatenate(offset_s), np.concatenate(offset_t), all_breaks,
+                             constraints=tuple(ocons), c1=True)
     return offset, fits
 
 
@@ -471,41 +541,42 @@ def _lane_fit(grid_s: np.ndarray, t_data: dict[int, np.ndarray],
 # input checks and resampling
 
 
-def _check_model(model: LaneModel, cfg: ExportConfig) -> None:
-    if cfg.piece_length_m <= 1.0 or not 0.0 <= cfg.look_fraction < 1.0 or cfg.lane_record_m <= 0.5:
-        raise InputError("configuration export", "piece_length_m > 1, 0 <= look_fraction < 1 and "
-                                                 "lane_record_m > 0.5 are required")
+def _check_model(model: LaneModel, cfg: ExportConfig, where: str = _WHERE) -> None:
+    if cfg.piece_length_m <= 1.0 or not 0.0 <= cfg.look_fraction < 1.0 or cfg.lane_record_m <= 0.5 \
+            or cfg.junction_blend_m <= 0.0:
+        raise InputError("configuration export", "piece_length_m > 1, 0 <= look_fraction < 1, "
+                                                 "lane_record_m > 0.5 and junction_blend_m > 0 are required")
     s = np.asarray(model.s, dtype=np.float64)
     ref = np.asarray(model.reference, dtype=np.float64)
     if s.ndim != 1 or ref.shape != (len(s), 3):
-        raise InputError(_WHERE, f"reference has shape {ref.shape} for {len(s)} stations (expected (M, 3))")
+        raise InputError(where, f"reference has shape {ref.shape} for {len(s)} stations (expected (M, 3))")
     if len(s) < 4 or not np.all(np.isfinite(s)) or not np.all(np.isfinite(ref[:, :2])):
-        raise InputError(_WHERE, "the reference line needs at least 4 finite stations and x, y")
+        raise InputError(where, "the reference line needs at least 4 finite stations and x, y")
     if np.any(np.diff(s) <= 0):
-        raise InputError(_WHERE, "reference stations s are not strictly increasing")
+        raise InputError(where, "reference stations s are not strictly increasing")
     if s[-1] - s[0] < 5.0:
-        raise InputError(_WHERE, f"the road is {s[-1] - s[0]:.2f} m long; at least 5 m are needed")
+        raise InputError(where, f"the road is {s[-1] - s[0]:.2f} m long; at least 5 m are needed")
     known = {b.id for b in model.boundaries}
     for b in model.boundaries:
         if np.shape(b.t) != s.shape:
-            raise InputError(_WHERE, f"boundary {b.id}: {np.size(b.t)} offsets for {len(s)} stations")
+            raise InputError(where, f"boundary {b.id}: {np.size(b.t)} offsets for {len(s)} stations")
         if b.mark_type not in ("solid", "broken"):
-            raise InputError(_WHERE, f"boundary {b.id}: mark type {b.mark_type!r} (solid or broken)")
+            raise InputError(where, f"boundary {b.id}: mark type {b.mark_type!r} (solid or broken)")
     if not model.sections:
-        raise InputError(_WHERE, "no lane sections")
+        raise InputError(where, "no lane sections")
     for j, sec in enumerate(model.sections):
         if len(sec.boundary_ids) < 2:
-            raise InputError(_WHERE, f"lane section {j} has {len(sec.boundary_ids)} boundaries (at least 2)")
+            raise InputError(where, f"lane section {j} has {len(sec.boundary_ids)} boundaries (at least 2)")
         missing = [i for i in sec.boundary_ids if i not in known]
         if missing:
-            raise InputError(_WHERE, f"lane section {j} names unknown boundaries {missing}")
+            raise InputError(where, f"lane section {j} names unknown boundaries {missing}")
         if sec.divider_id is not None and sec.divider_id not in sec.boundary_ids[1:-1]:
-            raise InputError(_WHERE, f"lane section {j}: divider {sec.divider_id} is not one of its inner "
+            raise InputError(where, f"lane section {j}: divider {sec.divider_id} is not one of its inner "
                                      f"boundaries {sec.boundary_ids}")
         if sec.s_end <= sec.s_start:
-            raise InputError(_WHERE, f"lane section {j} is empty (s {sec.s_start} to {sec.s_end})")
+            raise InputError(where, f"lane section {j} is empty (s {sec.s_start} to {sec.s_end})")
         if j and abs(sec.s_start - model.sections[j - 1].s_end) > 0.5:
-            raise InputError(_WHERE, f"lane section {j} starts at {sec.s_start:.2f} m but section {j - 1} "
+            raise InputError(where, f"lane section {j} starts at {sec.s_start:.2f} m but section {j - 1} "
                                      f"ends at {model.sections[j - 1].s_end:.2f} m")
 
 
@@ -528,9 +599,18 @@ def _resample(model: LaneModel) -> tuple[np.ndarray, np.ndarray, dict[int, np.nd
 
 
 def _superelevation(planes: GroundPlanes | None, grid_xy: np.ndarray, grid_odr: np.ndarray, left: np.ndarray,
-                    breaks: np.ndarray, cfg: ExportConfig) -> _Records:
-    """Roll of the ground planes about the road, left side up positive; 0 without planes."""
+                    breaks: np.ndarray, cfg: ExportConfig,
+                    constraints: tuple[tuple[float, float], ...] = ()) -> _Records:
+    """Roll of the ground planes about the road, left side up positive; 0 without planes.
+
+    `constraints` (station, roll) pin the roll where the road meets another at a junction; without
+    planes near the road the roll then fades from there to 0.
+    """
+    flat = np.zeros(len(grid_odr))
     zero = _Records(np.array([0.0]), np.zeros((1, 4)))
+    if constraints:
+        zero = _spline_records(grid_odr, flat, breaks, smooth=cfg.superelevation_smoothing,
+                               constraints=constraints, c1=True)
     if planes is None or len(planes.normals_world) == 0:
         return zero
     normals = np.asarray(planes.normals_world, dtype=np.float64)
@@ -546,7 +626,8 @@ def _superelevation(planes: GroundPlanes | None, grid_xy: np.ndarray, grid_odr: 
     s_pl = grid_odr[i][order]
     roll = median_filter(roll[order], size=max(1, cfg.superelevation_median_scans), mode="nearest")
     target = np.interp(grid_odr, s_pl, roll)
-    return _spline_records(grid_odr, target, breaks, smooth=cfg.superelevation_smoothing, c1=True)
+    return _spline_records(grid_odr, target, breaks, smooth=cfg.superelevation_smoothing,
+                           constraints=constraints, c1=True)
 
 
 # --------------------------------------------------------------------------------------------
@@ -669,61 +750,225 @@ def _serialise(odr: xodr.OpenDrive, geo: str, geodetic: bool, date: str | None, 
 # measuring what was written
 
 
-def _measure(data: bytes) -> tuple[float, float, float]:
-    """Largest leap, kink and |declared - integrated length| between the written geometries."""
+def _measure(data: bytes, joins: list[tuple[int, int]]) -> tuple[float, float, float]:
+    """Largest leap, kink and |declared - integrated length| between the written geometries.
+
+    Within every road, and across every continuation junction (`joins`: incoming and outgoing road
+    ids) from the incoming road's last geometry to the outgoing road's first.
+    """
     root = etree.fromstring(data)
-    geoms = root.findall("road/planView/geometry")
     leap = kink = lerr = 0.0
-    prev_end: tuple[float, float, float] | None = None
     xs, ws = np.polynomial.legendre.leggauss(64)
     pgl = 0.5 * (xs + 1)
-    for g in geoms:
-        pp = g.find("paramPoly3")
-        u = np.array([float(pp.get(k)) for k in ("aU", "bU", "cU", "dU")])
-        v = np.array([float(pp.get(k)) for k in ("aV", "bV", "cV", "dV")])
-        x, y, h, length = (float(g.get(k)) for k in ("x", "y", "hdg", "length"))
-        start_h = h + math.atan2(v[1], u[1])
+    first: dict[str, tuple[float, float, float]] = {}
+    last: dict[str, tuple[float, float, float]] = {}
+    for road in root.findall("road"):
+        prev_end: tuple[float, float, float] | None = None
+        for g in road.findall("planView/geometry"):
+            pp = g.find("paramPoly3")
+            u = np.array([float(pp.get(k)) for k in ("aU", "bU", "cU", "dU")])
+            v = np.array([float(pp.get(k)) for k in ("aV", "bV", "cV", "dV")])
+            x, y, h, length = (float(g.get(k)) for k in ("x", "y", "hdg", "length"))
+            start = (x + u[0] * math.cos(h) - v[0] * math.sin(h), y + u[0] * math.sin(h) + v[0] * math.cos(h),
+                     h + math.atan2(v[1], u[1]))
+            if prev_end is None:
+                first[road.get("id")] = start
+            else:
+                leap = max(leap, math.hypot(start[0] - prev_end[0], start[1] - prev_end[1]))
+                kink = max(kink, abs(_wrap(start[2] - prev_end[2])))
+            prev_end = _local_end(u, v, x, y, h)
+            speed = np.hypot(u[1] + 2 * u[2] * pgl + 3 * u[3] * pgl**2, v[1] + 2 * v[2] * pgl + 3 * v[3] * pgl**2)
+            lerr = max(lerr, abs(0.5 * float(speed @ ws) - length))
         if prev_end is not None:
-            leap = max(leap, math.hypot(x + u[0] * math.cos(h) - v[0] * math.sin(h) - prev_end[0],
-                                        y + u[0] * math.sin(h) + v[0] * math.cos(h) - prev_end[1]))
-            kink = max(kink, abs(_wrap(start_h - prev_end[2])))
-        prev_end = _local_end(u, v, x, y, h)
-        speed = np.hypot(u[1] + 2 * u[2] * pgl + 3 * u[3] * pgl**2, v[1] + 2 * v[2] * pgl + 3 * v[3] * pgl**2)
-        lerr = max(lerr, abs(0.5 * float(speed @ ws) - length))
+            last[road.get("id")] = prev_end
+    for a, b in joins:
+        end, start = last[str(a)], first[str(b)]
+        leap = max(leap, math.hypot(start[0] - end[0], start[1] - end[1]))
+        kink = max(kink, abs(_wrap(start[2] - end[2])))
     return leap, kink, lerr
 
 
+def _junction_gap(data: bytes) -> float:
+    """Largest distance between linked lane borders across the junctions, as the project's reader sees them."""
+    from lidar2xodr.check import junction_gaps
+    from lidar2xodr.opendrive import OpenDriveMap
+
+    with tempfile.TemporaryDirectory(prefix="lidar2xodr-") as tmp:
+        written = Path(tmp) / "map.xodr"
+        written.write_bytes(data)
+        return float(junction_gaps(OpenDriveMap.load(written))["max_junction_gap_m"])
+
+
 # --------------------------------------------------------------------------------------------
+# roads joined by direct junctions
 
 
-def export_opendrive(model: LaneModel, planes: GroundPlanes | None, cfg: ExportConfig, path: Path) -> ExportSummary:
-    """Write `model` as one OpenDRIVE road to `path` (atomically) and return what was measured."""
-    _check_model(model, cfg)
+@dataclass
+class _End:
+    """A written road end as readers evaluate it: reference pose, profiles and the lanes of its end section."""
+
+    x: float
+    y: float
+    hdg: float
+    z: float
+    dz: float
+    roll: float
+    borders: list[float]  # t of every boundary of the end section, left to right
+    widths: list[float]  # width of every lane of the end section
+
+
+@dataclass
+class _Join:
+    """One end of a road is anchored to an end of road `other` (`other_end`: its end, else its start).
+
+    `pairs`: (lane of this road, lane of the other road) in the two end sections, left to right.
+    """
+
+    other: int
+    other_end: bool
+    pairs: list[tuple[int, int]]
+    continuation: bool
+
+
+@dataclass
+class _Anchor:
+    """What an anchored road end must meet, taken from the written cross-section of the road it joins."""
+
+    pose: Pose  # the reference point and heading the road has there
+    z: float
+    dz: float
+    roll: float
+    lanes: _LaneEnd
+    blend: tuple[int, int] | None  # a branch: its first and last linked lane (the model is bent onto the anchor)
+
+
+@dataclass
+class _Built:
+    """One written road and what the network needs from it."""
+
+    road: xodr.Road
+    fits: list[_SectionFit]
+    length: float
+    pieces: int
+    start: _End
+    end: _End
+    outline: np.ndarray  # world xy of the reference line and every lane border
+    reference_dev: float
+    border_dev: float
+
+
+def _anchor(other: _End, join: _Join, zero: set[int]) -> _Anchor:
+    """Continuation: the reference goes on exactly. Branch: it starts (ends) on the other road's
+    cross-section at the middle of the linked lanes, with its heading. Either way the linked lanes
+    take the other road's widths there and the left border of the first one its t."""
+    own, oth = [p[0] for p in join.pairs], [p[1] for p in join.pairs]
+    t_ref = 0.0 if join.continuation else 0.5 * (other.borders[oth[0]] + other.borders[oth[-1] + 1])
+    lateral = t_ref * math.cos(other.roll)
+    pose = (other.x - math.sin(other.hdg) * lateral, other.y + math.cos(other.hdg) * lateral, other.hdg)
+    lanes = _LaneEnd(zero, {o: other.widths[t] for o, t in join.pairs}, (own[0], other.borders[oth[0]] - t_ref))
+    return _Anchor(pose, other.z + t_ref * math.sin(other.roll), other.dz, other.roll, lanes,
+                   None if join.continuation else (own[0], own[-1]))
+
+
+def _end_heading(grid: np.ndarray, xy: np.ndarray, at_end: bool) -> float:
+    """Heading of the model's reference at one end: tangent of a quadratic fit over its last 20 m."""
+    s_end = grid[-1] if at_end else grid[0]
+    near = np.abs(grid - s_end) <= min(20.0, 0.5 * (grid[-1] - grid[0])) + 1e-9
+    d = grid[near] - s_end
+    deg = min(2, int(near.sum()) - 1)
+    return math.atan2(np.polyfit(d, xy[near, 1], deg)[deg - 1], np.polyfit(d, xy[near, 0], deg)[deg - 1])
+
+
+def _blend(grid: np.ndarray, ref: np.ndarray, left: np.ndarray, t_grid: dict[int, np.ndarray], ids: list[int],
+           anchor: _Anchor, at_end: bool, cfg: ExportConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Bend a branch's model onto its anchor near the junction end; the rest stays where the markings are.
+
+    The middle of its linked lanes at that end moves onto the anchor point and its heading turns onto
+    the anchor's; the correction (a rotation about that middle plus a shift, and a height shift) fades
+    with a smoothstep over `junction_blend_m` (or the road's length if shorter). Boundaries move with
+    the reference: their normals turn by the same angle.
+    """
+    e = len(grid) - 1 if at_end else 0
+    first, last = anchor.blend
+    t_mid = 0.0
+    for bid in (ids[first], ids[last + 1]):
+        ok = np.flatnonzero(np.isfinite(t_grid[bid]))
+        t_mid += 0.5 * float(t_grid[bid][ok[np.argmin(np.abs(ok - e))]]) if len(ok) else 0.0
+    pivot = ref[e, :2] + t_mid * left[e]
+    dist = grid[-1] - grid if at_end else grid - grid[0]
+    fade = 1.0 - _smoothstep(dist / min(cfg.junction_blend_m, grid[-1] - grid[0]))
+    theta = _wrap(anchor.pose[2] - _end_heading(grid, ref[:, :2], at_end)) * fade
+    c, s = np.cos(theta), np.sin(theta)
+
+    def turn(v: np.ndarray) -> np.ndarray:
+        return np.stack([c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1]], axis=1)
+
+    out = ref.copy()
+    out[:, :2] = pivot + turn(ref[:, :2] - pivot) + fade[:, None] * (np.array(anchor.pose[:2]) - pivot)
+    out[:, 2] = ref[:, 2] + fade * (anchor.z - ref[e, 2])
+    return out, turn(left)
+
+
+def _project_boundaries(plan: _Plan, xy: np.ndarray, left: np.ndarray, t_grid: dict[int, np.ndarray],
+                        grid_odr: np.ndarray, k: np.ndarray, p: np.ndarray) -> dict[int, np.ndarray]:
+    """Every boundary's world points projected onto the written reference line, as t on `grid_odr`."""
+    out: dict[int, np.ndarray] = {}
+    for bid, t in t_grid.items():
+        ok = np.isfinite(t)
+        out[bid] = np.full(len(grid_odr), np.nan)
+        if ok.sum() >= 2:
+            s_b, t_b = plan.project(xy[ok] + t[ok, None] * left[ok], k[ok], p[ok])
+            order = np.argsort(s_b)
+            out[bid][ok] = np.interp(grid_odr[ok], s_b[order], t_b[order])
+    return out
+
+
+def _road_end(plan: _Plan, offset: _Records, fits: list[_SectionFit], elevation: _Records,
+              superelevation: _Records, total: float, at_end: bool) -> _End:
+    if at_end:
+        x, y, hdg = _local_end(plan.u[-1], plan.v[-1], float(plan.x[-1]), float(plan.y[-1]), float(plan.hdg[-1]))
+        s, fit = np.array([total]), fits[-1]
+    else:
+        x, y, hdg = float(plan.x[0]), float(plan.y[0]), float(plan.hdg[0])
+        s, fit = np.array([0.0]), fits[0]
+    return _End(x, y, hdg, float(elevation(s)[0]), float(elevation(s, der=1)[0]), float(superelevation(s)[0]),
+                [float(b[0]) for b in fit.borders(offset(s), s)], [float(w(s)[0]) for w in fit.widths])
+
+
+def _build_road(model: LaneModel, planes: GroundPlanes | None, cfg: ExportConfig, road_id: int, name: str,
+                start: _Anchor | _LaneEnd | None, end: _Anchor | _LaneEnd | None, where: str) -> _Built:
+    """Fit and build one road; an _Anchor end meets the road it joins exactly, a _LaneEnd only ends its lanes."""
+    anchors = {False: start if isinstance(start, _Anchor) else None, True: end if isinstance(end, _Anchor) else None}
+    lane_ends = [a.lanes if isinstance(a, _Anchor) else a for a in (start, end)]
     grid, ref, t_grid = _resample(model)
+    tangent = np.gradient(ref[:, :2], grid, axis=0)
+    left = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1) / np.linalg.norm(tangent, axis=1)[:, None]
+    given_ref, given_left = ref, left
+    for at_end, anchor in anchors.items():
+        if anchor is not None and anchor.blend is not None:
+            ids = model.sections[-1 if at_end else 0].boundary_ids
+            ref, left = _blend(grid, ref, left, t_grid, ids, anchor, at_end, cfg)
     length_m = grid[-1] - grid[0]
     n_pieces = max(1, math.ceil(length_m / cfg.piece_length_m - 1e-9))
     breaks = np.linspace(grid[0], grid[-1], n_pieces + 1)
-    plan = _fit_plan(grid, ref[:, :2], breaks, cfg)
+    poses = [None if a is None else a.pose for a in anchors.values()]
+    plan = _fit_plan(grid, ref[:, :2], breaks, cfg, poses[0], poses[1], where)
 
     k = np.clip(np.searchsorted(breaks, grid, side="right") - 1, 0, n_pieces - 1)
     p = (grid - breaks[k]) / (breaks[k + 1] - breaks[k])
     grid_odr, ref_t = plan.project(ref[:, :2], k, p)
-    tangent = np.gradient(ref[:, :2], grid, axis=0)
-    left = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1) / np.linalg.norm(tangent, axis=1)[:, None]
-
-    t_odr: dict[int, np.ndarray] = {}
-    for bid, t in t_grid.items():
-        ok = np.isfinite(t)
-        t_odr[bid] = np.full(len(grid), np.nan)
-        if ok.sum() >= 2:
-            s_b, t_b = plan.project(ref[ok, :2] + t[ok, None] * left[ok], k[ok], p[ok])
-            order = np.argsort(s_b)
-            t_odr[bid][ok] = np.interp(grid_odr[ok], s_b[order], t_b[order])
+    t_odr = _project_boundaries(plan, ref[:, :2], left, t_grid, grid_odr, k, p)
 
     total = float(plan.s[-1] + plan.length[-1])
     geo_breaks = np.r_[plan.s, total]
-    elevation = _spline_records(grid_odr, ref[:, 2], geo_breaks)
-    superelevation = _superelevation(planes, ref[:, :2], grid_odr, left, geo_breaks, cfg)
+    z_cons: list[tuple[float, ...]] = []
+    roll_cons: list[tuple[float, float]] = []
+    for at, anchor in zip((0.0, total), anchors.values(), strict=True):
+        if anchor is not None:
+            z_cons += [(at, anchor.z), (at, anchor.dz, 1)]
+            roll_cons.append((at, anchor.roll))
+    elevation = _spline_records(grid_odr, ref[:, 2], geo_breaks, constraints=tuple(z_cons))
+    superelevation = _superelevation(planes, ref[:, :2], grid_odr, left, geo_breaks, cfg, tuple(roll_cons))
     slant = 1.0 / np.cos(superelevation(grid_odr))  # t runs along the banked surface
     t_odr = {bid: t * slant for bid, t in t_odr.items()}
     sec_s = np.interp([sec.s_start for sec in model.sections], grid, grid_odr)
@@ -732,7 +977,7 @@ def export_opendrive(model: LaneModel, planes: GroundPlanes | None, cfg: ExportC
     sections = [(float(a), float(b), list(sec.boundary_ids),
                  0 if sec.divider_id is None else list(sec.boundary_ids).index(sec.divider_id))
                 for a, b, sec in zip(sec_s, sec_e, model.sections, strict=True)]
-    offset, fits = _lane_fit(grid_odr, t_odr, sections, cfg)
+    offset, fits = _lane_fit(grid_odr, t_odr, sections, cfg, lane_ends[0], lane_ends[1], where)
 
     planview = xodr.PlanView()
     for i in range(len(plan.s)):
@@ -740,33 +985,213 @@ def export_opendrive(model: LaneModel, planes: GroundPlanes | None, cfg: ExportC
                            prange="normalized", length=float(plan.length[i]))
         planview.add_fixed_geometry(geom, float(plan.x[i]), float(plan.y[i]), float(plan.hdg[i]), s=float(plan.s[i]))
     bounds = {b.id: b for b in model.boundaries}
-    road = xodr.Road(1, planview, _build_lanes(offset, fits, bounds, cfg), name=cfg.road_name,
-                     rule=xodr.TrafficRule.RHT)
+    road = xodr.Road(road_id, planview, _build_lanes(offset, fits, bounds, cfg), name=name, rule=xodr.TrafficRule.RHT)
     road.add_type(getattr(xodr.RoadType, cfg.road_type), 0.0)
-    for start, (a, b, c, d) in zip(elevation.starts, elevation.coeffs, strict=True):
-        road.add_elevation(float(start), float(a), float(b), float(c), float(d))
-    for start, (a, b, c, d) in zip(superelevation.starts, superelevation.coeffs, strict=True):
-        road.add_superelevation(float(start), float(a), float(b), float(c), float(d))
-    geo, geodetic = _geo_reference(model)
-    odr = xodr.OpenDrive(cfg.road_name, revMajor="1", revMinor=str(cfg.opendrive_minor), geo_reference=geo)
-    odr.add_road(road)
+    for rec_start, (a, b, c, d) in zip(elevation.starts, elevation.coeffs, strict=True):
+        road.add_elevation(float(rec_start), float(a), float(b), float(c), float(d))
+    for rec_start, (a, b, c, d) in zip(superelevation.starts, superelevation.coeffs, strict=True):
+        road.add_superelevation(float(rec_start), float(a), float(b), float(c), float(d))
 
+    t_dev = t_odr
+    if ref is not given_ref:  # deviations from the model as given, so a branch's junction snap shows
+        _, ref_t = plan.project(given_ref[:, :2], k, p)
+        t_dev = {bid: t * slant for bid, t in _project_boundaries(plan, given_ref[:, :2], given_left, t_grid,
+                                                                    grid_odr, k, p).items()}
     border_dev = 0.0
-    outer: list[np.ndarray] = [ref[:, :2]]
+    outline: list[np.ndarray] = [ref[:, :2]]
     for fit in fits:
         m = (grid_odr >= fit.s0) & (grid_odr <= fit.s1)
         for bid, border in zip(fit.ids, fit.borders(offset(grid_odr[m]), grid_odr[m]), strict=True):
-            ok = np.isfinite(t_odr[bid][m])
+            ok = np.isfinite(t_dev[bid][m])
             if ok.any():
-                border_dev = max(border_dev, float(np.max(np.abs(border[ok] - t_odr[bid][m][ok]))))
-            outer.append(ref[m, :2] + border[:, None] * left[m])
-    pts = np.vstack(outer)
+                border_dev = max(border_dev, float(np.max(np.abs(border[ok] - t_dev[bid][m][ok]))))
+            outline.append(ref[m, :2] + border[:, None] * left[m])
+    ends = [_road_end(plan, offset, fits, elevation, superelevation, total, at_end) for at_end in (False, True)]
+    return _Built(road, fits, total, len(plan.s), ends[0], ends[1], np.vstack(outline),
+                  float(np.max(np.abs(ref_t))), border_dev)
+
+
+_NET = "road network"
+
+
+def _check_network(network: RoadNetwork, cfg: ExportConfig) -> list[str]:
+    """Validate every road and link; returns the name each road's errors carry."""
+    n = len(network.roads)
+    if n == 0:
+        raise InputError(_NET, "no roads")
+    wheres = [_WHERE] if n == 1 else [f"{_WHERE} of road {k + 1}" for k in range(n)]
+    for model, where in zip(network.roads, wheres, strict=True):
+        _check_model(model, cfg, where)
+    if any(model.origin != network.roads[0].origin for model in network.roads):
+        raise InputError(_NET, "the roads have different origins (one local frame is needed)")
+    seen: set[tuple[int, int]] = set()
+    continued: set[tuple[int, bool]] = set()
+    for q, link in enumerate(network.links):
+        a, b = link.incoming, link.outgoing
+        if not (0 <= a < n and 0 <= b < n) or a == b:
+            raise InputError(_NET, f"link {q} joins road indices {a} -> {b} (two different roads of 0..{n - 1})")
+        name = f"link {q} (road {a + 1} -> road {b + 1})"
+        if (a, b) in seen:
+            raise InputError(_NET, f"{name}: the two roads are already linked")
+        seen.add((a, b))
+        n_in = len(network.roads[a].sections[-1].boundary_ids) - 1
+        n_out = len(network.roads[b].sections[0].boundary_ids) - 1
+        pairs = sorted((int(i), int(j)) for i, j in link.lanes)
+        if not pairs:
+            raise InputError(_NET, f"{name} links no lanes")
+        if any(not (0 <= i < n_in and 0 <= j < n_out) for i, j in pairs):
+            raise InputError(_NET, f"{name}: lane pairs {pairs} outside the {n_in} lanes of the incoming road's last "
+                                   f"section or the {n_out} of the outgoing road's first")
+        if np.any(np.diff([i for i, _ in pairs]) != 1) or np.any(np.diff([j for _, j in pairs]) != 1):
+            raise InputError(_NET, f"{name}: lane pairs {pairs} must be neighbouring lanes in the same order "
+                                   "on both roads")
+        if link.continuation:
+            for key in ((a, True), (b, False)):
+                if key in continued:
+                    raise InputError(_NET, f"{name}: road {key[0] + 1} already continues at its "
+                                           f"{'end' if key[1] else 'start'} (one continuation per road end)")
+                continued.add(key)
+    return wheres
+
+
+def _plan_joins(network: RoadNetwork) -> tuple[dict[tuple[int, bool], _Join], list[int]]:
+    """Which road end is anchored to which (continuations first), and a build order that honours it.
+
+    A continuation anchors the outgoing road's start. A branch link anchors the branch: the outgoing
+    road at a diverge (its incoming road has several outgoing links, or the link is alone), the
+    incoming road at a merge (its outgoing road has several incoming links). Where that end is
+    already anchored the other end of the link is used.
+    """
+    links = network.links
+    leaving = {a: sum(lk.incoming == a for lk in links) for a in range(len(network.roads))}
+    joining = {b: sum(lk.outgoing == b for lk in links) for b in range(len(network.roads))}
+    joins: dict[tuple[int, bool], _Join] = {}
+    for link in sorted(links, key=lambda lk: not lk.continuation):
+        pairs = sorted((int(i), int(j)) for i, j in link.lanes)
+        forward = ((link.outgoing, False), _Join(link.incoming, True, [(j, i) for i, j in pairs], link.continuation))
+        back = ((link.incoming, True), _Join(link.outgoing, False, pairs, False))
+        options = [forward] if link.continuation else (
+            [forward, back] if leaving[link.incoming] > 1 or joining[link.outgoing] < 2 else [back, forward])
+        for key, join in options:
+            if key not in joins:
+                joins[key] = join
+                break
+        else:
+            raise InputError(_NET, f"road {link.incoming + 1} -> road {link.outgoing + 1}: both ends are already "
+                                   "joined exactly to other roads")
+    needs = {r: {j.other for (road, _), j in joins.items() if road == r} for r in range(len(network.roads))}
+    order: list[int] = []
+    while len(order) < len(network.roads):
+        ready = [r for r in range(len(network.roads)) if r not in order and needs[r] <= set(order)]
+        if not ready:
+            raise InputError(_NET, "the links form a cycle of roads whose ends depend on each other")
+        order.append(ready[0])
+    return joins, order
+
+
+def _junction_groups(links: list[RoadLink]) -> list[list[int]]:
+    """Links sharing an incoming road (a diverge) or an outgoing road (a merge) form one junction."""
+    root = list(range(len(links)))
+
+    def find(i: int) -> int:
+        while root[i] != i:
+            i = root[i]
+        return i
+
+    for i, a in enumerate(links):
+        for j in range(i):
+            if a.incoming == links[j].incoming or a.outgoing == links[j].outgoing:
+                root[find(i)] = find(j)
+    groups: dict[int, list[int]] = {}
+    for i in range(len(links)):
+        groups.setdefault(find(i), []).append(i)
+    return sorted(groups.values())
+
+
+def _junction_name(links: list[RoadLink]) -> str:
+    if len(links) > 1 and len({lk.incoming for lk in links}) == 1:
+        return "diverge"
+    if len(links) > 1 and len({lk.outgoing for lk in links}) == 1:
+        return "merge"
+    return "junction"
+
+
+# --------------------------------------------------------------------------------------------
+
+
+def export_network(network: RoadNetwork, planes: GroundPlanes | None, cfg: ExportConfig,
+                   path: Path) -> ExportSummary:
+    """Write the roads of `network` (ids 1..N in order) joined by direct junctions to `path` (atomically).
+
+    Junction ids follow the road ids (N + 1, ...), so every id in the file is unique. Roads are built
+    in an order where every anchored end's partner is already written (see `_plan_joins`, `_anchor`).
+    """
+    wheres = _check_network(network, cfg)
+    n = len(network.roads)
+    joins, order = _plan_joins(network)
+    linked: dict[tuple[int, bool], set[int]] = {}
+    for link in network.links:
+        linked.setdefault((link.incoming, True), set()).update(int(i) for i, _ in link.lanes)
+        linked.setdefault((link.outgoing, False), set()).update(int(j) for _, j in link.lanes)
+
+    built: dict[int, _Built] = {}
+    for r in order:
+        model = network.roads[r]
+        ends: list[_Anchor | _LaneEnd | None] = []
+        for at_end in (False, True):
+            if (r, at_end) not in linked:
+                ends.append(None)
+                continue
+            n_lanes = len(model.sections[-1 if at_end else 0].boundary_ids) - 1
+            zero = set(range(n_lanes)) - linked[(r, at_end)]
+            join = joins.get((r, at_end))
+            if join is None:
+                ends.append(_LaneEnd(zero))
+            else:
+                other = built[join.other]
+                ends.append(_anchor(other.end if join.other_end else other.start, join, zero))
+        name = cfg.road_name if n == 1 else f"{cfg.road_name} {r + 1}"
+        built[r] = _build_road(model, planes, cfg, r + 1, name, ends[0], ends[1], wheres[r])
+
+    odr_junctions: list[xodr.Junction] = []
+    for g, group in enumerate(_junction_groups(network.links)):
+        jid = n + 1 + g
+        links = [network.links[q] for q in group]
+        junction = xodr.Junction(_junction_name(links), jid, xodr.JunctionType.direct)
+        for link in links:
+            connection = xodr.Connection(link.incoming + 1, link.outgoing + 1, xodr.ContactPoint.start)
+            for i, j in sorted(link.lanes):
+                connection.add_lanelink(built[link.incoming].fits[-1].lane_id(int(i)),
+                                        built[link.outgoing].fits[0].lane_id(int(j)))
+            junction.add_connection(connection)
+        for r in sorted({lk.incoming for lk in links}):
+            built[r].road.add_successor(xodr.ElementType.junction, jid)
+        for r in sorted({lk.outgoing for lk in links}):
+            built[r].road.add_predecessor(xodr.ElementType.junction, jid)
+        odr_junctions.append(junction)
+
+    geo, geodetic = _geo_reference(network.roads[0])
+    odr = xodr.OpenDrive(cfg.road_name, revMajor="1", revMinor=str(cfg.opendrive_minor), geo_reference=geo)
+    for r in range(n):
+        odr.add_road(built[r].road)
+    for junction in odr_junctions:
+        odr.add_junction(junction)
+    pts = np.vstack([built[r].outline for r in range(n)])
     margin = max(cfg.right_shoulder_m, cfg.left_border_m)
     bbox = np.r_[pts.min(axis=0) - margin, pts.max(axis=0) + margin]
 
     data = _serialise(odr, geo, geodetic, _date(planes), bbox)
-    leap, kink, lerr = _measure(data)
+    leap, kink, lerr = _measure(data, [(lk.incoming + 1, lk.outgoing + 1) for lk in network.links if lk.continuation])
+    gap = _junction_gap(data) if network.links else 0.0
     write_bytes(path, data)
-    return ExportSummary(length_m=total, pieces=len(plan.s), lane_sections=len(fits), max_leap_m=leap,
-                         max_kink_rad=kink, max_length_error_m=lerr, max_reference_dev_m=float(np.max(np.abs(ref_t))),
-                         max_border_dev_m=border_dev)
+    roads = list(built.values())
+    return ExportSummary(length_m=float(sum(b.length for b in roads)), pieces=sum(b.pieces for b in roads),
+                         lane_sections=sum(len(b.fits) for b in roads), max_leap_m=leap, max_kink_rad=kink,
+                         max_length_error_m=lerr, max_reference_dev_m=max(b.reference_dev for b in roads),
+                         max_border_dev_m=max(b.border_dev for b in roads), roads=n, junctions=len(odr_junctions),
+                         max_junction_gap_m=gap)
+
+
+def export_opendrive(model: LaneModel, planes: GroundPlanes | None, cfg: ExportConfig, path: Path) -> ExportSummary:
+    """Write `model` as one OpenDRIVE road to `path` (atomically) and return what was measured."""
+    return export_network(RoadNetwork([model]), planes, cfg, path)
