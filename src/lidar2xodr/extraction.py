@@ -104,11 +104,11 @@ def fit_ground_plane(
     cos_tilt = np.cos(np.radians(cfg.ransac_max_tilt_deg))
     seeds = xyz
     if max_offset is not None:
-        near = xyz[np.abs(xyz[:, 2]) < max_offset]
+        near = np.compress(np.abs(xyz[:, 2]) < max_offset, xyz, axis=0)
         seeds = near if len(near) >= 3 else xyz
     m = min(len(seeds), cfg.ransac_sample_points)
-    sample_t = (seeds[rng.integers(0, len(seeds), size=m)] if m < len(seeds) else seeds).T.copy()
-    tri = seeds[rng.integers(0, len(seeds), size=(cfg.ransac_iterations, 3))]
+    sample_t = (seeds.take(rng.integers(0, len(seeds), size=m), axis=0) if m < len(seeds) else seeds).T.copy()
+    tri = seeds.take(rng.integers(0, len(seeds), size=(cfg.ransac_iterations, 3)), axis=0)
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     norm = np.linalg.norm(n, axis=1)
     ok = norm > 1e-9
@@ -128,9 +128,9 @@ def fit_ground_plane(
     best = int(np.argmax(score))
     normal, offset = n[best], float(d[best])
     cap = 4 * cfg.ransac_sample_points
-    refine = xyz if len(xyz) <= cap else xyz[rng.integers(0, len(xyz), size=cap)]
+    refine = xyz if len(xyz) <= cap else xyz.take(rng.integers(0, len(xyz), size=cap), axis=0)
     for _ in range(2):
-        inl = refine[np.abs(refine @ normal + offset) < cfg.ransac_distance_m]
+        inl = np.compress(np.abs(refine @ normal + offset) < cfg.ransac_distance_m, refine, axis=0)
         if len(inl) < 3:
             break
         c = inl.mean(axis=0)
@@ -245,10 +245,10 @@ def ground_heights(
         if not beyond.any():
             break
         ring = beyond if k == cfg.ground_rings - 1 else beyond & (r < 2.0 * lo)
-        q = pts[ring & (np.abs(h) < cfg.ground_ring_window_m)]
+        q = np.compress(ring & (np.abs(h) < cfg.ground_ring_window_m), pts, axis=0)
         tol = cfg.ground_ring_window_m
         for _ in range(2):
-            inl = q[np.abs(q @ n + d) < tol]
+            inl = np.compress(np.abs(q @ n + d) < tol, q, axis=0)
             if len(inl) < 30:
                 break
             c = inl.mean(axis=0)
@@ -258,7 +258,7 @@ def ground_heights(
                 break
             n, d = cand, float(-cand @ c)
             tol = cfg.ransac_distance_m
-        h[beyond] = pts[beyond] @ n + d
+        h[beyond] = np.compress(beyond, pts, axis=0) @ n + d
         lo *= 2.0
     return h
 
@@ -326,12 +326,13 @@ def local_paint_mask(
     idx = np.flatnonzero(_preselect(intensity, r, cfg.local_min_contrast) | fixed)
     if len(idx) == 0:
         return out, None
-    tree = cKDTree(xyz[reps, :2], balanced_tree=False, compact_nodes=False)
-    dist, nn = tree.query(xyz[idx, :2], k=k, distance_upper_bound=cfg.local_max_radius_m)
+    xy = xyz[:, :2]
+    tree = cKDTree(xy.take(reps, axis=0), balanced_tree=False, compact_nodes=False)
+    dist, nn = tree.query(xy.take(idx, axis=0), k=k, distance_upper_bound=cfg.local_max_radius_m)
     judged = np.isfinite(dist[:, -1])
     out[idx[~judged][intensity[idx[~judged]] >= cfg.reflectivity_threshold]] = True
-    idx, nn = idx[judged], reps[nn[judged]]
-    around = np.sort(np.stack([intensity[nn], height[nn]]), axis=2)
+    idx, nn = idx[judged], reps.take(np.compress(judged, nn, axis=0))
+    around = np.sort(np.stack([intensity.take(nn), height.take(nn)]), axis=2)
     lo, hi = (k - 1) // 2, k // 2
     med = 0.5 * (around[:, :, lo] + around[:, :, hi])
     dev = np.sort(np.abs(around - med[:, :, None]), axis=2)
@@ -383,10 +384,10 @@ def filter_scan(scan: Scan, cfg: ExtractionConfig, mount_z: float, max_range: fl
     if cfg.lateral_crop_m is not None:
         keep &= np.abs(y) <= cfg.lateral_crop_m
     idx = np.flatnonzero(keep)
-    pts = xyz[idx]
+    pts = xyz.take(idx, axis=0)
     r = np.sqrt(r2[idx])
     rng = np.random.default_rng([cfg.seed, scan.index])
-    plane = fit_ground_plane(pts[r < cfg.ransac_range_m], cfg, rng, cfg.ground_prior_m)
+    plane = fit_ground_plane(np.compress(r < cfg.ransac_range_m, pts, axis=0), cfg, rng, cfg.ground_prior_m)
     fell_back = plane is None
     if plane is None:
         plane = (np.array([0.0, 0.0, 1.0]), 0.0)
@@ -396,7 +397,7 @@ def filter_scan(scan: Scan, cfg: ExtractionConfig, mount_z: float, max_range: fl
     sel = idx[band]
     inten = scan.intensity[sel]
     out = ScanMarks(index=scan.index, stamp=scan.stamp, t_max=None if scan.times is None else float(scan.times.max()),
-                    plane=plane, fell_back=fell_back, band_points=len(sel), xyz=xyz[sel], intensity=inten,
+                    plane=plane, fell_back=fell_back, band_points=len(sel), xyz=xyz.take(sel, axis=0), intensity=inten,
                     times=None if scan.times is None else scan.times[sel])
     if not cfg.auto_threshold or (cfg.auto_method == "drive" and threshold is not None):
         mark = inten >= (cfg.reflectivity_threshold if not cfg.auto_threshold else threshold)
@@ -407,13 +408,13 @@ def filter_scan(scan: Scan, cfg: ExtractionConfig, mount_z: float, max_range: fl
         out.final = False
         out.calib = inten[r[band] < cfg.auto_threshold_range_m]
     if mark is not None:
-        out.xyz, out.intensity = out.xyz[mark], inten[mark]
+        out.xyz, out.intensity = np.compress(mark, out.xyz, axis=0), inten[mark]
         out.times = None if out.times is None else out.times[mark]
     if odometry:
         hall = xyz @ n + d
         rr = np.sqrt(r2)
         o = (hall > cfg.odometry_min_height_m) & (rr < cfg.odometry_max_range_m) & (rr > 2.0)
-        out.odo_xyz = xyz[o]
+        out.odo_xyz = np.compress(o, xyz, axis=0)
         out.odo_times = None if scan.times is None else scan.times[o]
     return out
 
