@@ -391,13 +391,14 @@ class _SectionFit:
         """OpenDRIVE id of lane i (between ids[i] and ids[i + 1]): right of lane 0 negative, left positive."""
         return -(i - self.centre + 1) if i >= self.centre else self.centre - i
 
-    def borders(self, offset: np.ndarray, s: np.ndarray) -> list[np.ndarray]:
-        """t of every boundary in `ids` as written: lane 0 at `offset`, widths outwards on both sides."""
+    def borders(self, offset: np.ndarray, s: np.ndarray, der: int = 0) -> list[np.ndarray]:
+        """t (or dt/ds with der=1 and offset's slope) of every boundary in `ids` as written: lane 0 at
+        `offset`, widths outwards on both sides."""
         out: list[np.ndarray] = [offset] * len(self.ids)
         for i in range(self.centre, len(self.widths)):
-            out[i + 1] = out[i] - self.widths[i](s)
+            out[i + 1] = out[i] - self.widths[i](s, der)
         for i in range(self.centre - 1, -1, -1):
-            out[i] = out[i + 1] + self.widths[i](s)
+            out[i] = out[i + 1] + self.widths[i](s, der)
         return out
 
 
@@ -440,13 +441,13 @@ class _LaneEnd:
     """Lane constraints at a road end that lies in a junction (lane indices of the end section).
 
     `zero`: lanes linked to nothing there; they start (end) at width 0 and open along the taper.
-    `widths`: lanes that must have this width there. `border`: (boundary position, t) the laneOffset
-    must produce there, given the widths.
+    `widths`: lanes that must have this width and width slope there. `border`: (boundary position,
+    t, dt/ds) the laneOffset must produce there, given the widths.
     """
 
     zero: set[int]
-    widths: dict[int, float] = field(default_factory=dict)
-    border: tuple[int, float] | None = None
+    widths: dict[int, tuple[float, float]] = field(default_factory=dict)
+    border: tuple[int, float, float] | None = None
 
 
 def _lane_fit(grid_s: np.ndarray, t_data: dict[int, np.ndarray],
@@ -502,7 +503,7 @@ def _lane_fit(grid_s: np.ndarray, t_data: dict[int, np.ndarray],
         widths = []
         for i in range(len(ids) - 1):
             w = arr[i] - arr[i + 1]
-            cons: list[tuple[float, float]] = []
+            cons: list[tuple[float, ...]] = []
             opens = j > 0 and i not in preds[j] or j == 0 and start is not None and i in start.zero
             ends = j < last and i not in succs[j] or j == last and end is not None and i in end.zero
             if opens:
@@ -511,12 +512,12 @@ def _lane_fit(grid_s: np.ndarray, t_data: dict[int, np.ndarray],
             elif j > 0:
                 cons.append((s0, float(fits[j - 1].widths[preds[j][i]](np.array([s0]))[0])))
             elif start is not None and i in start.widths:
-                cons.append((s0, start.widths[i]))
+                cons += [(s0, start.widths[i][0]), (s0, start.widths[i][1], 1)]
             if ends:
                 w = _taper(w, s1 - s, taper)
                 cons.append((s1, 0.0))
             elif j == last and end is not None and i in end.widths:
-                cons.append((s1, end.widths[i]))
+                cons += [(s1, end.widths[i][0]), (s1, end.widths[i][1], 1)]
             tapered = opens or ends
             if tapered and i == c:
                 lead = arr[c + 1] + w
@@ -527,11 +528,12 @@ def _lane_fit(grid_s: np.ndarray, t_data: dict[int, np.ndarray],
         offset_s.append(s)
         offset_t.append(lead)
     all_breaks = np.unique(np.concatenate([_uniform_breaks(a, b, cfg.lane_record_m) for a, b, _, _ in sections]))
-    ocons: list[tuple[float, float]] = []
+    ocons: list[tuple[float, ...]] = []
     for spec, fit, at in ((start, fits[0], sections[0][0]), (end, fits[-1], sections[-1][1])):
         if spec is not None and spec.border is not None:
-            pos, t = spec.border
-            ocons.append((at, t - float(fit.borders(np.zeros(1), np.array([at]))[pos][0])))
+            pos, t, slope = spec.border
+            rel = [float(fit.borders(np.zeros(1), np.array([at]), der)[pos][0]) for der in (0, 1)]
+            ocons += [(at, t - rel[0]), (at, slope - rel[1], 1)]
     offset = _spline_records(np.concatenate(offset_s), np.concatenate(offset_t), all_breaks,
                              constraints=tuple(ocons), c1=True)
     return offset, fits
@@ -814,7 +816,9 @@ class _End:
     dz: float
     roll: float
     borders: list[float]  # t of every boundary of the end section, left to right
+    border_slopes: list[float]  # their dt/ds
     widths: list[float]  # width of every lane of the end section
+    width_slopes: list[float]
 
 
 @dataclass
@@ -860,12 +864,14 @@ class _Built:
 def _anchor(other: _End, join: _Join, zero: set[int]) -> _Anchor:
     """Continuation: the reference goes on exactly. Branch: it starts (ends) on the other road's
     cross-section at the middle of the linked lanes, with its heading. Either way the linked lanes
-    take the other road's widths there and the left border of the first one its t."""
+    take the other road's widths and width slopes there, and the left border of the first one its t
+    and dt/ds, so linked borders meet with the same direction (to the small curvature term)."""
     own, oth = [p[0] for p in join.pairs], [p[1] for p in join.pairs]
     t_ref = 0.0 if join.continuation else 0.5 * (other.borders[oth[0]] + other.borders[oth[-1] + 1])
     lateral = t_ref * math.cos(other.roll)
     pose = (other.x - math.sin(other.hdg) * lateral, other.y + math.cos(other.hdg) * lateral, other.hdg)
-    lanes = _LaneEnd(zero, {o: other.widths[t] for o, t in join.pairs}, (own[0], other.borders[oth[0]] - t_ref))
+    widths = {o: (other.widths[t], other.width_slopes[t]) for o, t in join.pairs}
+    lanes = _LaneEnd(zero, widths, (own[0], other.borders[oth[0]] - t_ref, other.border_slopes[oth[0]]))
     return _Anchor(pose, other.z + t_ref * math.sin(other.roll), other.dz, other.roll, lanes,
                    None if join.continuation else (own[0], own[-1]))
 
@@ -932,7 +938,9 @@ def _road_end(plan: _Plan, offset: _Records, fits: list[_SectionFit], elevation:
         x, y, hdg = float(plan.x[0]), float(plan.y[0]), float(plan.hdg[0])
         s, fit = np.array([0.0]), fits[0]
     return _End(x, y, hdg, float(elevation(s)[0]), float(elevation(s, der=1)[0]), float(superelevation(s)[0]),
-                [float(b[0]) for b in fit.borders(offset(s), s)], [float(w(s)[0]) for w in fit.widths])
+                [float(b[0]) for b in fit.borders(offset(s), s)],
+                [float(b[0]) for b in fit.borders(offset(s, der=1), s, der=1)],
+                [float(w(s)[0]) for w in fit.widths], [float(w(s, der=1)[0]) for w in fit.widths])
 
 
 def _build_road(model: LaneModel, planes: GroundPlanes | None, cfg: ExportConfig, road_id: int, name: str,
