@@ -429,6 +429,33 @@ class ListDataset:
         return Trajectory(times=times, poses=poses)
 
 
+def test_gnss_placement_is_slerp_and_linear_translation() -> None:
+    """The placer's two-step rotation equals scipy's Slerp (and np.interp) at knots, ends and in between."""
+    from scipy.spatial.transform import Slerp
+
+    from lidar2xodr.extraction import GnssPlacer
+
+    rng = np.random.default_rng(3)
+    times = np.cumsum(rng.uniform(0.005, 0.02, 400)) + 50.0
+    rot = Rotation.from_rotvec(np.cumsum(rng.normal(0, 0.05, (400, 3)), axis=0))
+    poses = np.tile(np.eye(4), (400, 1, 1))
+    poses[:, :3, :3] = rot.as_matrix()
+    poses[:, :3, 3] = np.cumsum(rng.normal(0, 0.3, (400, 3)), axis=0)
+    placer = GnssPlacer(Trajectory(times=times, poses=poses), ExtractionConfig())
+    slerp = Slerp(times, rot)
+    xyz = rng.normal(0, 30, (300, 3))
+    for t in (rng.uniform(times[100], times[110], 300), np.full(300, times[0]), np.full(300, times[-1]),
+              times[200:203].repeat(100)):
+        world, T = placer.place(float(t.max()), xyz, t)
+        pos = np.column_stack([np.interp(t, times, poses[:, j, 3]) for j in range(3)])
+        assert np.allclose(world, slerp(t).apply(xyz) + pos, atol=1e-9, rtol=0)
+        assert np.allclose(T[:3, :3], slerp([t.max()]).as_matrix()[0], atol=1e-12)
+        assert np.allclose(T[:3, 3], pos[np.argmax(t)], atol=1e-12)
+    world, T = placer.place(float(times[5]), xyz, None)
+    assert np.allclose(world, xyz @ poses[5, :3, :3].T + poses[5, :3, 3], atol=1e-9)
+    assert placer.place(float(times[5]), np.zeros((0, 3)), np.zeros(0))[0].shape == (0, 3)
+
+
 def test_motion_compensation_matters(drive: Drive) -> None:
     """Per-point times put every return where it was measured; the scan stamp alone smears the
     dashes along the road by up to speed x half the sweep (1 m here)."""
