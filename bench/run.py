@@ -78,7 +78,11 @@ def bench_map(name: str, xodr: Path, out: Path, length_m: float, lane_target: fl
 
 
 def bench_speed(out: Path, length_m: float) -> dict:
-    """Simulator and extraction speed on the project's demo road, default sensor."""
+    """Simulator and extraction speed on the project's demo road, default sensor.
+
+    Extraction speed as real-time factor (drive duration / wall time of the `extract` command) and
+    points per second (every point of every scan / the same wall time).
+    """
     sys.path.insert(0, str(REPO / "src"))
     from lidar2xodr.demo_road import write_demo_road
 
@@ -91,9 +95,16 @@ def bench_speed(out: Path, length_m: float) -> dict:
         return row
     poses = (drive / "poses.csv").read_text().splitlines()[1:]
     duration = float(poses[-1].split(",")[0]) - float(poses[0].split(",")[0])
+    scans = sorted((drive / "scans").glob("*.pcd"))
+    points = 0  # from the PCD headers ("POINTS n"): every point the extraction reads
+    for path in scans:
+        with path.open("rb") as fh:
+            head = fh.read(1024).split(b"\nDATA", 1)[0]
+        points += next(int(line.split()[1]) for line in head.splitlines() if line.startswith(b"POINTS"))
     rc, t_ext, log = run(CLI + ["extract", str(drive), "-o", str(out / "speed" / "markings.ply")])
-    row.update(drive_duration_s=round(duration, 1), extract_s=round(t_ext, 1),
-               extract_realtime_factor=round(duration / t_ext, 1) if rc == 0 else None)
+    row.update(drive_duration_s=round(duration, 1), scans=len(scans), scan_points=points, extract_s=round(t_ext, 1),
+               extract_realtime_factor=round(duration / t_ext, 1) if rc == 0 else None,
+               extract_points_per_s=round(points / t_ext) if rc == 0 else None)
     if rc != 0:
         row["error"] = log[-500:]
     return row
