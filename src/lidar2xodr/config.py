@@ -46,15 +46,7 @@ class ExtractionConfig(_Section):
                                         "sigmas (MAD) of the road intensities: paint is an outlier of the road")
     pose_time_tolerance_s: float = Field(0.1, description="ours: point times may exceed the poses by this much")
     odometry_voxel_m: float = Field(1.0, description="ours: KISS-ICP voxel size (highway structure is coarse)")
-    odometry_max_range_m: float = Field(200.0, description="ours: KISS-ICP uses points within this radius (far "
-                                        "trees, posts and signs fix the heading: 80 m drifted 3-10 deg/km on "
-                                        "simulated motorways, 200 m 0.1-0.3 deg/km)")
-    odometry_max_accel_mps2: float | None = Field(10.0, description="ours: a registration that changes the "
-                                                  "forward velocity faster than this (1 g) is clamped to it (ICP "
-                                                  "slipping along a featureless wall); None = no limits")
-    odometry_max_side_accel_mps2: float = Field(2.0, description="ours: the same for the sideways and vertical "
-                                                "velocity in the vehicle frame: a car does not slide or jump "
-                                                "(in curves its velocity turns with it), so these stay near 0")
+    odometry_max_range_m: float = Field(80.0, description="ours: KISS-ICP uses points within this radius")
     odometry_min_height_m: float = Field(0.3, description="ours: KISS-ICP sees only points this far above the "
                                          "ground plane (the flat road has no longitudinal structure)")
     odometry_threshold_m: float | None = Field(1.0, description="ours: fixed ICP kernel; None = KISS-ICP adaptive")

@@ -17,8 +17,6 @@ Poses are T_world_vehicle with the world frame = the vehicle frame of the first 
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
@@ -83,7 +81,6 @@ class LidarOdometry:
         self.twists: list[np.ndarray] = []
         self._twist = np.zeros(6)
         self.start_speed: float | None = None
-        self.clamped = 0
 
     def __len__(self) -> int:
         return len(self.poses)
@@ -163,24 +160,11 @@ class LidarOdometry:
                 if gap > 0:
                     self._twist = se3_log(np.linalg.inv(prev) @ pose) / gap
                 guess = pose
-            pose = self._limit_acceleration(prev, pose, gap)
             self._threshold.update_model_deviation(np.linalg.inv(initial) @ pose)
         self._map.update(down, pose)
         self.stamps.append(stamp)
         self.poses.append(pose)
         self.twists.append(self._twist.copy())
-
-    def _limit_acceleration(self, prev: np.ndarray, pose: np.ndarray, gap: float) -> np.ndarray:
-        """The pose with the change of velocity since the last scan clamped per vehicle axis (module docstring)."""
-        if self.cfg.odometry_max_accel_mps2 is None or gap <= 0 or not self.twists:
-            return pose
-        limit = gap * np.array([self.cfg.odometry_max_accel_mps2] + [self.cfg.odometry_max_side_accel_mps2] * 2)
-        dv = self._twist[:3] - self.twists[-1][:3]
-        if np.all(np.abs(dv) <= limit):
-            return pose
-        self._twist[:3] = self.twists[-1][:3] + np.clip(dv, -limit, limit)
-        self.clamped += 1
-        return prev @ se3_exp(self._twist * gap)
 
     def to_world(self, k: int, xyz: np.ndarray, times: np.ndarray | None) -> np.ndarray:
         """Points of the k-th fed scan (vehicle frame, absolute times) in the world frame, deskewed."""
@@ -193,71 +177,3 @@ class LidarOdometry:
     def trajectory(self) -> Trajectory:
         poses = np.array(self.poses) if self.poses else np.zeros((0, 4, 4))
         return Trajectory(times=np.array(self.stamps, dtype=np.float64), poses=poses)
-
-
-def rigid_fit_2d(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation (2 x 2) and translation that best move the points `src` onto `dst` (least squares, no scale)."""
-    cs, cd = src.mean(axis=0), dst.mean(axis=0)
-    u, _, vt = np.linalg.svd((src - cs).T @ (dst - cd))
-    d = np.sign(np.linalg.det(u @ vt))
-    rot = (u @ np.diag([1.0, d]) @ vt).T
-    return rot, cd - rot @ cs
-
-
-def align_to_truth(est: Trajectory, truth: Trajectory) -> tuple[np.ndarray, np.ndarray]:
-    """`rigid_fit_2d` of the odometry positions onto the true positions at the odometry's stamps."""
-    true_xy = np.column_stack([np.interp(est.times, truth.times, truth.positions[:, j]) for j in range(2)])
-    return rigid_fit_2d(est.positions[:, :2], true_xy)
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
-def _yaw(poses: np.ndarray) -> np.ndarray:
-    return np.unwrap(np.arctan2(poses[:, 1, 0], poses[:, 0, 0]))
-
-
-def trajectory_errors(est: Trajectory, truth: Trajectory, segment_m: float = 100.0) -> dict[str, float]:
-    """How far an odometry trajectory is from the true one, in the plane (and height at the end).
-
-    The true poses are interpolated at the odometry's stamps. `aligned_*`: position errors after
-    the rigid 2D fit of the whole odometry trajectory onto the true one (`rigid_fit_2d`);
-    `segment_*`: drift per `segment_m` of travel (KITTI style): from every scan, the true and the
-    odometry displacement to the scan `segment_m` further on, each in its own start heading,
-    differ by this much (mean and max over all starts). `heading_end_deg` and `height_end_m`:
-    the odometry's change of heading and of height over the drive minus the true one.
-    """
-    t = est.times
-    true_xy = np.column_stack([np.interp(t, truth.times, truth.positions[:, j]) for j in range(2)])
-    true_z = np.interp(t, truth.times, truth.positions[:, 2])
-    true_yaw = np.interp(t, truth.times, _yaw(truth.poses))
-    xy, yaw = est.positions[:, :2], _yaw(est.poses)
-    rot, shift = align_to_truth(est, truth)
-    err = np.linalg.norm(xy @ rot.T + shift - true_xy, axis=1)
-    travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(true_xy, axis=0), axis=1))])
-    length_est = float(np.sum(np.linalg.norm(np.diff(xy, axis=0), axis=1)))
-    end = np.searchsorted(travelled, travelled + segment_m)
-    start = np.flatnonzero(end < len(t))
-    seg = np.zeros(0)
-    if len(start):
-        j = end[start]
-
-        def local(p: np.ndarray, h: np.ndarray) -> np.ndarray:
-            d = p[j] - p[start]
-            c, s = np.cos(h[start]), np.sin(h[start])
-            return np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
-
-        seg = np.linalg.norm(local(xy, yaw) - local(true_xy, true_yaw), axis=1)
-    return {
-        "travelled_m": float(travelled[-1]),
-        "length_error_pct": 100.0 * (length_est / max(float(travelled[-1]), 1e-9) - 1.0),
-        "aligned_rmse_m": float(np.sqrt(np.mean(err**2))),
-        "aligned_max_m": float(err.max()),
-        "aligned_end_m": float(err[-1]),
-        "segment_m": segment_m,
-        "segment_mean_m": float(seg.mean()) if len(seg) else float("nan"),
-        "segment_max_m": float(seg.max()) if len(seg) else float("nan"),
-        "heading_end_deg": math.degrees(_wrap((yaw[-1] - yaw[0]) - (true_yaw[-1] - true_yaw[0]))),
-        "height_end_m": float((est.positions[-1, 2] - est.positions[0, 2]) - (true_z[-1] - true_z[0])),
-    }

@@ -13,14 +13,13 @@ Decisions:
   lanes grass 5 cm lower; sidewalks and curbs concrete 12 cm higher.
 - Verges beyond the outermost lane: 1.5 m gravel then 6.5 m grass falling to 0.7 m below the road
   (2 m on junction roads). Lower than any road, so they never cover another road's surface.
-- Guard rails (W-beam 0.45-0.75 m on posts every 2 m, the usual motorway rail) 1 m beyond both
-  carriageway edges of roads longer than 100 m outside junctions, and in medians >= 1.5 m wide; delineator posts with
+- Guard rails (W-beam 0.45-0.75 m on posts every 4 m) 1 m beyond both carriageway edges of roads
+  longer than 100 m outside junctions, and in medians >= 1.5 m wide; delineator posts with
   retro-reflectors every 50 m. Both are left out wherever they would stand on another road.
 - About one structure per km on roads longer than 400 m outside junctions: an overpass (deck
   5.5-6.5 m above the road, 12 m wide, abutments beyond the verges) or a sign gantry (beam at
   7.0-7.6 m, retro-reflective sign faces 2.5-3.5 m high with their lower edge 5.2-5.7 m above the
   road, facing each direction's traffic). Placement is seeded per road id.
-- Beyond the verges: terrain, vegetation, roadside signs and noise barriers (roadside.py).
 """
 
 from __future__ import annotations
@@ -158,8 +157,6 @@ class _Soup:
 
 def build_world(odr: OpenDriveMap, roads: list[str], seed: int) -> StaticWorld:
     """Every static triangle of the given roads (and the structures over them)."""
-    from lidar2xodr.simulation.roadside import add_roadside
-
     soup = _Soup()
     clear = _Clearance(odr)
     for rid in roads:
@@ -172,8 +169,6 @@ def build_world(odr: OpenDriveMap, roads: list[str], seed: int) -> StaticWorld:
             _rails(soup, road, clear, rng)
         if road.junction == "-1" and road.length > 400.0:
             _structures(soup, road, clear, rng)
-        if road.junction == "-1" and road.length > 100.0:
-            add_roadside(soup, road, clear, np.random.default_rng([seed, zlib.crc32(rid.encode()), 1]))
     if not soup.tri:
         tri = np.zeros((0, 3, 3))
         return StaticWorld(np.zeros(3), tri.astype(np.float32), np.zeros(0, np.uint8), np.zeros(0, np.float32),
@@ -321,7 +316,6 @@ class _Clearance:
         self.owner = np.concatenate(owner) if owner else np.zeros(0, np.int64)
         self.tree = cKDTree(self.pts) if len(self.pts) else None
         self.max_half = float(self.half.max()) if len(self.half) else 0.0
-        self._other_trees: dict[str, tuple[cKDTree, np.ndarray] | None] = {}
 
     def blocked(self, xy: np.ndarray, road_id: str, margin: float) -> np.ndarray:
         """True where a paved lane of another road lies within `margin` of the points."""
@@ -332,23 +326,6 @@ class _Clearance:
         i = np.where(ok, i, 0)
         near = ok & (d < self.half[i] + margin) & (self.owner[i] != self.ids[road_id])
         return near.any(axis=1)
-
-    def distance(self, xy: np.ndarray, road_id: str, cap: float) -> np.ndarray:
-        """Distance from the points to the nearest paved lane of another road (at most `cap`)."""
-        others = self._others(road_id)
-        if others is None or len(xy) == 0:
-            return np.full(len(xy), cap)
-        tree, half = others
-        d, i = tree.query(xy, k=4, distance_upper_bound=cap + self.max_half)
-        ok = np.isfinite(d)
-        gap = np.where(ok, d - half[np.where(ok, i, 0)], np.inf)
-        return np.clip(gap.min(axis=1), 0.0, cap)
-
-    def _others(self, road_id: str) -> tuple[cKDTree, np.ndarray] | None:
-        if road_id not in self._other_trees:
-            m = self.owner != self.ids[road_id]
-            self._other_trees[road_id] = (cKDTree(self.pts[m]), self.half[m]) if m.any() else None
-        return self._other_trees[road_id]
 
 
 def _rails(soup: _Soup, road: Road, clear: _Clearance, rng: np.random.Generator) -> None:
@@ -366,7 +343,7 @@ def _rails(soup: _Soup, road: Road, clear: _Clearance, rng: np.random.Generator)
             hi = road.to_world(s, t, 0.75)
             ok = ~(blocked[:-1] | blocked[1:])
             soup.strip(lo[None], hi[None], R.STEEL, R.draw_base(R.STEEL, 1, rng)[0], keep=ok[None])
-            posts = np.flatnonzero(~blocked)
+            posts = np.flatnonzero(~blocked)[::2]
             _posts(soup, road, s[posts], t[posts], 0.1, 0.7, R.STEEL, 0.3)
             if inward:
                 every = np.flatnonzero(~blocked)[::25]
