@@ -250,14 +250,18 @@ def ground_heights(
     """
     n, d = plane
     h = pts @ n + d
-    cos_tilt = np.cos(np.radians(cfg.ransac_max_tilt_deg))
     lo = cfg.ransac_range_m
+    far = np.flatnonzero(r >= lo) if cfg.ground_rings else np.zeros(0, dtype=np.int64)
+    if len(far) == 0:
+        return h
+    cos_tilt = np.cos(np.radians(cfg.ransac_max_tilt_deg))
+    fp, fr, fh = pts.take(far, axis=0), r[far], h[far]
     for k in range(cfg.ground_rings):
-        beyond = r >= lo
+        beyond = fr >= lo
         if not beyond.any():
             break
-        ring = beyond if k == cfg.ground_rings - 1 else beyond & (r < 2.0 * lo)
-        q = np.compress(ring & (np.abs(h) < cfg.ground_ring_window_m), pts, axis=0)
+        ring = beyond if k == cfg.ground_rings - 1 else beyond & (fr < 2.0 * lo)
+        q = np.compress(ring & (np.abs(fh) < cfg.ground_ring_window_m), fp, axis=0)
         tol = cfg.ground_ring_window_m
         for _ in range(2):
             inl = np.compress(np.abs(q @ n + d) < tol, q, axis=0)
@@ -268,8 +272,9 @@ def ground_heights(
                 break
             n, d = cand, float(-cand @ c)
             tol = cfg.ransac_distance_m
-        h[beyond] = np.compress(beyond, pts, axis=0) @ n + d
+        fh[beyond] = np.compress(beyond, fp, axis=0) @ n + d
         lo *= 2.0
+    h[far] = fh
     return h
 
 
