@@ -206,17 +206,29 @@ def radius_outliers(xyz: np.ndarray, radius: float, min_neighbors: int, workers:
     Points that share a grid cell of edge radius / sqrt(3) with `min_neighbors` others have them
     within `radius` (the cell's diagonal): painted lines are dense, so that settles ~90 % of an
     accumulated cloud without a query. The rest get a k-nearest query with an upper bound
-    ("are there k neighbours", 5x faster than ball counts here) on `workers` threads.
+    ("are there k neighbours", 5x faster than ball counts here) on `workers` threads; with more
+    than one worker the tree is built in a thread while the cells are counted.
     """
     if len(xyz) == 0:
         return np.zeros(0, dtype=bool)
     if min_neighbors <= 0:
         return np.ones(len(xyz), dtype=bool)
-    keep = _dense_cells(xyz, radius / np.sqrt(3.0) * (1.0 - 1e-9), min_neighbors + 1)
+    cell = radius / np.sqrt(3.0) * (1.0 - 1e-9)
+    if workers > 1:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(1) as ex:
+            building = ex.submit(cKDTree, xyz, balanced_tree=False, compact_nodes=False)
+            keep = _dense_cells(xyz, cell, min_neighbors + 1)
+            tree = building.result()
+    else:
+        keep = _dense_cells(xyz, cell, min_neighbors + 1)
+        tree = None
     rest = np.flatnonzero(~keep)
     if len(rest):
-        tree = cKDTree(xyz, balanced_tree=False, compact_nodes=False)
-        dist, _ = tree.query(xyz[rest], k=[min_neighbors + 1], distance_upper_bound=radius, workers=workers)
+        tree = tree if tree is not None else cKDTree(xyz, balanced_tree=False, compact_nodes=False)
+        dist, _ = tree.query(xyz.take(rest, axis=0), k=[min_neighbors + 1], distance_upper_bound=radius,
+                             workers=workers)
         keep[rest] = np.isfinite(dist[:, 0])
     return keep
 
@@ -796,7 +808,7 @@ def extract_markings(
     rep.wall_s = _time.perf_counter() - wall0
     origin = dataset.origin if mode == "gnss" else GeoOrigin()
     return MarkingCloud(
-        xyz=xyz[keep], intensity=inten[keep], scan_index=scan_idx[keep], time=ptime[keep],
+        xyz=np.compress(keep, xyz, axis=0), intensity=inten[keep], scan_index=scan_idx[keep], time=ptime[keep],
         planes=GroundPlanes(times=planes[:, 0], points_world=planes[:, 1:4], normals_world=planes[:, 4:7]),
         trajectory=traj, origin=origin,
     )
