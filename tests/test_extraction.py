@@ -454,6 +454,9 @@ def test_gnss_placement_is_slerp_and_linear_translation() -> None:
     world, T = placer.place(float(times[5]), xyz, None)
     assert np.allclose(world, xyz @ poses[5, :3, :3].T + poses[5, :3, 3], atol=1e-9)
     assert placer.place(float(times[5]), np.zeros((0, 3)), np.zeros(0))[0].shape == (0, 3)
+    repeated = Trajectory(times=np.r_[times[:3], times[2:5]], poses=np.r_[poses[:3], poses[2:5]])
+    with pytest.raises(InputError, match="drive.*strictly increasing"):
+        GnssPlacer(repeated, ExtractionConfig(), "drive")
 
 
 def test_motion_compensation_matters(drive: Drive) -> None:

@@ -458,7 +458,9 @@ class GnssPlacer:
     `check` is the parent's, on the points a scan finally keeps.
     """
 
-    def __init__(self, traj: Trajectory, cfg: ExtractionConfig) -> None:
+    def __init__(self, traj: Trajectory, cfg: ExtractionConfig, where: str = "poses") -> None:
+        if len(traj) < 2 or not np.all(np.diff(traj.times) > 0):
+            raise InputError(where, "the poses need at least 2 entries with strictly increasing times")
         self.traj = traj
         self.tol = cfg.pose_time_tolerance_s
         self.rot = Rotation.from_matrix(traj.poses[:, :3, :3])
@@ -512,7 +514,7 @@ class _PoseSource:
         if mode == "gnss":
             traj = dataset.poses()
             assert traj is not None
-            self.gnss = GnssPlacer(traj, cfg)
+            self.gnss = GnssPlacer(traj, cfg, self.name)
         else:
             from lidar2xodr.odometry import LidarOdometry
 
