@@ -570,7 +570,7 @@ def worker_count(cfg: ExtractionConfig) -> int:
 
 
 _Result = tuple[int, float | None, ReadStats, object]
-_BATCH = 4
+_BATCH = 8
 
 
 @dataclass
