@@ -459,6 +459,33 @@ def test_gnss_placement_is_slerp_and_linear_translation() -> None:
         GnssPlacer(repeated, ExtractionConfig(), "drive")
 
 
+def test_drive_poses_fast_path_equals_the_general_reader(tmp_path: Path) -> None:
+    """numpy parses the drive's own poses.csv; other layouts and bad cells go to read_pose_csv."""
+    from lidar2xodr.datasets.drive import read_drive_poses
+    from lidar2xodr.datasets.poses import read_pose_csv
+
+    rng = np.random.default_rng(2)
+    rows = ["time,x,y,z,roll,pitch,yaw,lat,lon,alt"]
+    for i in range(200):
+        v = rng.normal(0, 1, 9)
+        rows.append(f"{1700000000 + i * 0.01:.6f}," + ",".join(f"{x:.7f}" for x in v))
+    path = tmp_path / "poses.csv"
+    path.write_text("\n".join(rows) + "\n", encoding="utf-8")
+    fast, general = read_drive_poses(path), read_pose_csv(path)[0]
+    assert np.array_equal(fast.times, general.times) and np.array_equal(fast.poses, general.poses)
+    rows[5] = rows[5].rsplit(",", 3)[0] + ",,,"  # empty lat, lon, alt: allowed, general reader
+    path.write_text("\n".join(rows) + "\n", encoding="utf-8")
+    assert np.array_equal(read_drive_poses(path).poses, read_pose_csv(path)[0].poses)
+    rows[7] = rows[7].replace(",", ",x", 1)
+    path.write_text("\n".join(rows) + "\n", encoding="utf-8")
+    with pytest.raises(InputError, match="row 8"):
+        read_drive_poses(path)
+    rows[7], rows[9] = rows[9], rows[7].replace(",x", ",", 1)  # times go backwards
+    path.write_text("\n".join(rows) + "\n", encoding="utf-8")
+    with pytest.raises(InputError, match="not increasing"):
+        read_drive_poses(path)
+
+
 def test_motion_compensation_matters(drive: Drive) -> None:
     """Per-point times put every return where it was measured; the scan stamp alone smears the
     dashes along the road by up to speed x half the sweep (1 m here)."""
