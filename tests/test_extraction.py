@@ -459,6 +459,20 @@ def test_gnss_placement_is_slerp_and_linear_translation() -> None:
         GnssPlacer(repeated, ExtractionConfig(), "drive")
 
 
+def test_drive_reader_moves_points_like_the_shared_path(drive: Drive, tmp_path: Path) -> None:
+    """The drive reader's own mount transform: the same numbers and dropped rows as base.transform."""
+    from lidar2xodr.datasets.base import transform
+    from lidar2xodr.datasets.pointfiles import read_scan_file
+
+    ds = open_dataset(write_drive(drive, tmp_path / "d", nan_rows=5))
+    scan, stats = ds.read_scan(3)
+    raw = read_scan_file(ds.items[3])
+    finite = np.isfinite(raw.xyz).all(axis=1)
+    assert stats.dropped_points == 5 and scan is not None
+    assert np.array_equal(scan.xyz, transform(ds.sensor.mount, raw.xyz[finite]))
+    assert np.allclose(scan.xyz, raw.xyz[finite] @ drive.mount[:3, :3].T + drive.mount[:3, 3], atol=1e-9)
+
+
 def test_drive_poses_fast_path_equals_the_general_reader(tmp_path: Path) -> None:
     """numpy parses the drive's own poses.csv; other layouts and bad cells go to read_pose_csv."""
     from lidar2xodr.datasets.drive import read_drive_poses

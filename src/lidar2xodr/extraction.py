@@ -408,7 +408,7 @@ def filter_scan(scan: Scan, cfg: ExtractionConfig, mount_z: float, max_range: fl
     `threshold` is the fixed or per-drive threshold (None: not known yet; unused by 'local').
     `odometry` also returns the scan's points above the ground for LiDAR odometry.
     """
-    xyz = scan.xyz
+    xyz = np.ascontiguousarray(scan.xyz)
     x, y = xyz[:, 0], xyz[:, 1]
     r2 = x * x + y * y
     keep = (r2 < max_range * max_range) & (xyz[:, 2] < mount_z - cfg.below_sensor_margin_m)

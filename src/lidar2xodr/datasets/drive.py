@@ -72,6 +72,8 @@ def read_drive_poses(path: Path) -> Trajectory:
 class DriveDataset(ScanFileDataset):
     """Reader of DRIVE/meta.yaml + scans/*.pcd + poses.csv."""
 
+    points_in_vehicle_frame = True  # `_read` applies the mount itself (speed)
+
     def __init__(self, path: Path) -> None:
         super().__init__()
         self.path = path
@@ -127,12 +129,20 @@ class DriveDataset(ScanFileDataset):
             self._trajectory = read_drive_poses(poses)
 
     def _read(self, k: int) -> RawScan:
-        """Scan k with its points column-major (Fortran order): x, y and z each contiguous.
+        """Scan k, its points moved into the vehicle frame here, column-major (Fortran order).
 
-        Speed only (the same numbers): the reader's per-row finiteness check (`np.isfinite(xyz)
-        .all(axis=1)`) runs along contiguous columns then, 0.01 instead of 0.25 ms on a 13k-point
-        scan, and the mount transform still hands a row-major array to the extraction.
+        Speed only, the same numbers as the shared path (`points_in_vehicle_frame` then skips its
+        transform): numpy loops over rows of 3 when a (3,) translation is broadcast onto (N, 3)
+        points or a finiteness test is reduced along rows, 0.15 and 0.25 ms on a 13k-point scan;
+        along contiguous columns both take 0.01-0.03 ms. Non-finite rows stay non-finite through
+        a rotation, so the reader still drops exactly the same rows.
         """
         raw = read_scan_file(self.items[k])
-        raw.xyz = np.asfortranarray(raw.xyz)
+        T = self.sensor.mount
+        xyz = np.empty((len(raw.xyz), 3), order="F")
+        with np.errstate(invalid="ignore", over="ignore"):  # NaN/inf rows: dropped by the shared cleaning
+            np.matmul(raw.xyz, T[:3, :3].T, out=xyz)
+            for c in range(3):
+                xyz[:, c] += T[c, 3]
+        raw.xyz = xyz
         return raw
