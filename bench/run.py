@@ -126,6 +126,71 @@ def bench_aimotive(out: Path) -> dict:
     return row
 
 
+ODOMETRY_MAPS = {"AB_RQ31_Straight": "asam/AB_RQ31_Straight.xodr", "AB_RQ31_R2000": "asam/AB_RQ31_R2000.xodr"}
+
+
+def bench_odometry(out: Path, length_m: float) -> list[dict]:
+    """`build --odometry lidar` on simulated motorway drives (default sensor, mid traffic, --roadside) vs truth.
+
+    The odometry map lives in the first scan's vehicle frame. The odometry trajectory is fitted
+    rigidly in 2D (rotation and translation, least squares) onto the true poses at its stamps;
+    the same transform moves every planView geometry of the built map into the map frame, and
+    `compare` measures it there. Drift: see `lidar2xodr.odometry.trajectory_errors`.
+    """
+    sys.path.insert(0, str(REPO / "src"))
+    import math
+
+    from lxml import etree
+
+    from lidar2xodr.datasets.poses import read_pose_csv
+    from lidar2xodr.markings_io import load_markings
+    from lidar2xodr.odometry import align_to_truth, trajectory_errors
+
+    rows = []
+    for name, rel in ODOMETRY_MAPS.items():
+        xodr, base = SHARED / "maps" / rel, out / "odometry" / name
+        row: dict = {"map": name, "length_m": length_m}
+        rows.append(row)
+        if not xodr.is_file():
+            row["skipped"] = f"{xodr} not found"
+            continue
+        rc, t_sim, log = run(CLI + ["simulate", str(xodr), str(base / "drive"), "--length-m", str(length_m),
+                                    "--seed", "1", "--roadside"])
+        row["simulate_s"] = round(t_sim, 1)
+        if rc != 0:
+            row["error"] = "simulate: " + log.strip().splitlines()[-1]
+            continue
+        built = base / "map.xodr"
+        rc, t_build, log = run(CLI + ["build", str(base / "drive"), "-o", str(built), "--odometry", "lidar",
+                                      "--keep-intermediate", str(base / "keep")])
+        row["build_s"] = round(t_build, 1)
+        if rc != 0:
+            row["error"] = "build: " + log.strip().splitlines()[-1]
+            continue
+        est = load_markings(base / "keep" / "markings.ply").trajectory
+        truth, _ = read_pose_csv(base / "drive" / "truth" / "poses.csv")
+        row.update({k: round(v, 3) for k, v in trajectory_errors(est, truth).items()})
+        rot, shift = align_to_truth(est, truth)
+        tree = etree.parse(str(built))
+        turn = math.atan2(rot[1, 0], rot[0, 0])
+        for g in tree.iter("geometry"):
+            x, y = rot @ [float(g.get("x")), float(g.get("y"))] + shift
+            g.set("x", repr(float(x)))
+            g.set("y", repr(float(y)))
+            g.set("hdg", repr(float(g.get("hdg")) + turn))
+        aligned = base / "map_aligned.xodr"
+        tree.write(str(aligned), xml_declaration=True, encoding="UTF-8")
+        metrics_path = base / "metrics.json"
+        rc, _, log = run(CLI + ["compare", str(aligned), str(xodr), "--json", str(metrics_path)])
+        if not metrics_path.exists():
+            row["error"] = "compare: " + log.strip().splitlines()[-1]
+            continue
+        m = json.loads(metrics_path.read_text())
+        row.update(boundaries_rmse_aligned=m["boundaries"]["rmse_m"], centerline_rmse_aligned=m["centerline"]["rmse_m"],
+                   lane_count=m["lane_count_agreement"], coverage=m["coverage"])
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", type=Path, default=REPO / "bench-out")
@@ -133,6 +198,7 @@ def main() -> None:
     ap.add_argument("--speed-length-m", type=float, default=10000.0)
     ap.add_argument("--maps", nargs="*", default=None)
     ap.add_argument("--skip-speed", action="store_true")
+    ap.add_argument("--skip-odometry", action="store_true", help="skip the LiDAR odometry benchmark")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     results: dict = {"command": " ".join(sys.argv)}
@@ -150,6 +216,10 @@ def main() -> None:
     else:
         print(f"shared maps not found at {SHARED}: accuracy benchmark skipped")
     results["accuracy"] = rows
+    if not args.skip_odometry:
+        results["odometry"] = bench_odometry(args.out, args.length_m)
+        for row in results["odometry"]:
+            print(json.dumps(row), flush=True)
     results["aimotive"] = bench_aimotive(args.out)
     print(json.dumps(results["aimotive"], default=str)[:2000], flush=True)
     (args.out / "results.json").write_text(json.dumps(results, indent=2, default=str))

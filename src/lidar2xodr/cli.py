@@ -198,6 +198,8 @@ def simulate(
     seed: int = typer.Option(0, "--seed", help="Seed of every random choice."),
     rosbag: bool = typer.Option(False, "--rosbag", help="Also write drive.mcap (ROS 2)."),
     preview: bool = typer.Option(False, "--preview", help="Also write a close-up per 200 m under preview/."),
+    roadside: bool = typer.Option(False, "--roadside", help="Terrain, trees, signs, noise barriers beside the "
+                                  "road (needed by --odometry lidar)."),
 ) -> None:
     """Turn any OpenDRIVE map into a simulated LiDAR test drive with ground truth."""
     from pydantic import ValidationError
@@ -206,7 +208,8 @@ def simulate(
     from lidar2xodr.simulation import simulate as run_simulation
 
     raw = dict(start_road=start_road, speed_kmh=speed_kmh, length_m=length_m, sensor=sensor, traffic=traffic,
-               gnss_noise_m=gnss_noise_m, gnss_outage=gnss_outage, seed=seed, rosbag=rosbag, preview=preview)
+               gnss_noise_m=gnss_noise_m, gnss_outage=gnss_outage, seed=seed, rosbag=rosbag, preview=preview,
+               roadside=roadside)
     try:
         opts = SimOptions(**raw)
     except ValidationError as exc:

@@ -38,6 +38,8 @@ class SimOptions(BaseModel):
     seed: int = 0
     rosbag: bool = False
     preview: bool = False
+    roadside: bool = Field(False, description="terrain, vegetation, signs and noise barriers beside the road "
+                           "(roadside.py): what LiDAR odometry needs to find the forward motion")
 
 
 @dataclass

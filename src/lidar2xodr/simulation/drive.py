@@ -74,7 +74,7 @@ def run(map_path: Path, out_dir: Path, opts: SimOptions, console: Console | None
     n_scans = int(math.floor(duration / preset.period + 1e-9))
     if n_scans < 1:
         raise InputError(map_path, "the drive is shorter than one scan")
-    world = build_world(p.odr, _roads_in_view(p.odr, ego.pos, preset.max_range_m + 60.0), opts.seed)
+    world = build_world(p.odr, _roads_in_view(p.odr, ego.pos, preset.max_range_m + 60.0), opts.seed, opts.roadside)
     lidar = Lidar(preset, world, ego, traffic, agents, T0, _stream(opts.seed, 3))
     geo = W.Geo(p.odr.geo_reference)
     close_k = _closeup_index(ego, traffic)

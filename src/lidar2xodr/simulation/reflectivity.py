@@ -21,16 +21,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-ASPHALT, PAINT_WHITE, PAINT_YELLOW, GRASS, GRAVEL, CONCRETE, STEEL, SIGN, VEHICLE, PLATE, DELINEATOR = range(11)
+(ASPHALT, PAINT_WHITE, PAINT_YELLOW, GRASS, GRAVEL, CONCRETE, STEEL, SIGN, VEHICLE, PLATE, DELINEATOR, FOLIAGE,
+ WOOD) = range(13)
 
 MATERIAL_NAMES = (
     "asphalt", "paint_white", "paint_yellow", "grass", "gravel", "concrete", "steel", "sign", "vehicle",
-    "plate", "delineator",
+    "plate", "delineator", "foliage", "wood",
 )
 # Base reflectivity (mean, relative spread) and incidence exponent p of each material.
-_BASE = np.array([0.08, 0.8, 0.62, 0.32, 0.2, 0.3, 0.35, 3.0, 0.3, 2.0, 0.6])
-_SPREAD = np.array([0.18, 0.1, 0.1, 0.25, 0.2, 0.15, 0.15, 0.1, 0.0, 0.1, 0.1])
-_EXPONENT = np.array([0.6, 0.1, 0.1, 0.8, 0.7, 0.7, 0.5, 0.0, 0.7, 0.0, 0.5])
+# Foliage is green vegetation like the grass (a rough canopy returns about a third at 905 nm), bark like dry wood.
+_BASE = np.array([0.08, 0.8, 0.62, 0.32, 0.2, 0.3, 0.35, 3.0, 0.3, 2.0, 0.6, 0.35, 0.25])
+_SPREAD = np.array([0.18, 0.1, 0.1, 0.25, 0.2, 0.15, 0.15, 0.1, 0.0, 0.1, 0.1, 0.25, 0.2])
+_EXPONENT = np.array([0.6, 0.1, 0.1, 0.8, 0.7, 0.7, 0.5, 0.0, 0.7, 0.0, 0.5, 0.4, 0.7])
 
 _EXPONENT32 = _EXPONENT.astype(np.float32)
 

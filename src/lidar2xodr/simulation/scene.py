@@ -20,6 +20,8 @@ Decisions:
   5.5-6.5 m above the road, 12 m wide, abutments beyond the verges) or a sign gantry (beam at
   7.0-7.6 m, retro-reflective sign faces 2.5-3.5 m high with their lower edge 5.2-5.7 m above the
   road, facing each direction's traffic). Placement is seeded per road id.
+- With the `roadside` option: terrain, vegetation, roadside signs and noise barriers beyond the
+  verges (roadside.py).
 """
 
 from __future__ import annotations
@@ -155,8 +157,10 @@ class _Soup:
         self.add(np.stack(tris, axis=1), material, base)
 
 
-def build_world(odr: OpenDriveMap, roads: list[str], seed: int) -> StaticWorld:
-    """Every static triangle of the given roads (and the structures over them)."""
+def build_world(odr: OpenDriveMap, roads: list[str], seed: int, roadside: bool = False) -> StaticWorld:
+    """Every static triangle of the given roads (and the structures over them); `roadside` adds roadside.py."""
+    from lidar2xodr.simulation.roadside import add_roadside
+
     soup = _Soup()
     clear = _Clearance(odr)
     for rid in roads:
@@ -169,6 +173,8 @@ def build_world(odr: OpenDriveMap, roads: list[str], seed: int) -> StaticWorld:
             _rails(soup, road, clear, rng)
         if road.junction == "-1" and road.length > 400.0:
             _structures(soup, road, clear, rng)
+        if roadside and road.junction == "-1" and road.length > 100.0:
+            add_roadside(soup, road, clear, np.random.default_rng([seed, zlib.crc32(rid.encode()), 1]))
     if not soup.tri:
         tri = np.zeros((0, 3, 3))
         return StaticWorld(np.zeros(3), tri.astype(np.float32), np.zeros(0, np.uint8), np.zeros(0, np.float32),
@@ -316,6 +322,7 @@ class _Clearance:
         self.owner = np.concatenate(owner) if owner else np.zeros(0, np.int64)
         self.tree = cKDTree(self.pts) if len(self.pts) else None
         self.max_half = float(self.half.max()) if len(self.half) else 0.0
+        self._other_trees: dict[str, tuple[cKDTree, np.ndarray] | None] = {}
 
     def blocked(self, xy: np.ndarray, road_id: str, margin: float) -> np.ndarray:
         """True where a paved lane of another road lies within `margin` of the points."""
@@ -326,6 +333,23 @@ class _Clearance:
         i = np.where(ok, i, 0)
         near = ok & (d < self.half[i] + margin) & (self.owner[i] != self.ids[road_id])
         return near.any(axis=1)
+
+    def distance(self, xy: np.ndarray, road_id: str, cap: float) -> np.ndarray:
+        """Distance from the points to the nearest paved lane of another road (at most `cap`)."""
+        others = self._others(road_id)
+        if others is None or len(xy) == 0:
+            return np.full(len(xy), cap)
+        tree, half = others
+        d, i = tree.query(xy, k=4, distance_upper_bound=cap + self.max_half)
+        ok = np.isfinite(d)
+        gap = np.where(ok, d - half[np.where(ok, i, 0)], np.inf)
+        return np.clip(gap.min(axis=1), 0.0, cap)
+
+    def _others(self, road_id: str) -> tuple[cKDTree, np.ndarray] | None:
+        if road_id not in self._other_trees:
+            m = self.owner != self.ids[road_id]
+            self._other_trees[road_id] = (cKDTree(self.pts[m]), self.half[m]) if m.any() else None
+        return self._other_trees[road_id]
 
 
 def _rails(soup: _Soup, road: Road, clear: _Clearance, rng: np.random.Generator) -> None:
