@@ -332,6 +332,15 @@ def _preselect(intensity: np.ndarray, r: np.ndarray, min_contrast: float) -> np.
     return intensity >= floor[band] + min_contrast
 
 
+def _xy_at(xyz: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Contiguous (n, 2) x, y of the points `idx`, gathered by column (a take on the strided xy view
+    first copies the whole view)."""
+    out = np.empty((len(idx), 2))
+    out[:, 0] = xyz[:, 0].take(idx)
+    out[:, 1] = xyz[:, 1].take(idx)
+    return out
+
+
 def local_paint_mask(
     xyz: np.ndarray, intensity: np.ndarray, height: np.ndarray, r: np.ndarray, cfg: ExtractionConfig
 ) -> tuple[np.ndarray, float | None]:
@@ -358,9 +367,8 @@ def local_paint_mask(
     idx = np.flatnonzero(_preselect(intensity, r, cfg.local_min_contrast) | fixed)
     if len(idx) == 0:
         return out, None
-    xy = xyz[:, :2]
-    tree = cKDTree(xy.take(reps, axis=0), balanced_tree=False, compact_nodes=False)
-    dist, nn = tree.query(xy.take(idx, axis=0), k=k, distance_upper_bound=cfg.local_max_radius_m)
+    tree = cKDTree(_xy_at(xyz, reps), balanced_tree=False, compact_nodes=False)
+    dist, nn = tree.query(_xy_at(xyz, idx), k=k, distance_upper_bound=cfg.local_max_radius_m)
     judged = np.isfinite(dist[:, -1])
     out[idx[~judged][intensity[idx[~judged]] >= cfg.reflectivity_threshold]] = True
     idx, nn = idx[judged], reps.take(np.compress(judged, nn, axis=0))
