@@ -585,6 +585,13 @@ def test_process_pool_gives_the_same_bytes(drive: Drive, tmp_path: Path, method:
     assert reps[1].dropped_points > 0
 
 
+def test_stream_datasets_in_the_pool_give_the_same_bytes(drive: Drive) -> None:
+    """Readers of one stream (bags) are read in the parent and filtered and placed in the pool."""
+    one, two = (extract_markings(ListDataset(drive, True), ExtractionConfig(workers=w))  # type: ignore[arg-type]
+                for w in (1, 2))
+    assert len(one.xyz) > 800 and _cloud_bytes(one) == _cloud_bytes(two)
+
+
 def test_input_errors_with_workers_are_input_errors(drive: Drive, tmp_path: Path) -> None:
     folder = write_drive(drive, tmp_path / "d")
     scans = sorted((folder / "scans").iterdir())
