@@ -33,12 +33,13 @@ Decisions beyond the paper:
   the CPUs this process may use, at most 8) processes read, filter and place whole scans (fork,
   8 consecutive scans per task) and the parent takes them in recording order: the same bytes as
   one process. Odometry stays in the parent (it is sequential).
-- Speed (10 km demo drive, default sensor, 4303 scans of 13k points, on the shared 2-core machine
-  with other work beside it): 2.6 ms per scan in one process (paint test 1.5 ms, most of it the
-  k-nearest query; ground plane 0.4; reading 0.4; placement 0.1); `extract` 8.7-9.4 s wall =
-  46-50x real time with 2 workers when the machine is not saturated, ~27x with 1 worker. numpy
-  loops over rows of 3 when it broadcasts onto (N, 3) points, reduces or copies them row-wise
-  (5-10x slower than by column): the hot paths work by column or through BLAS products.
+- Speed (10 km demo drive, default sensor, 4303 scans, 38 M points, on the shared 2-core machine
+  with other work beside it): 2.6 ms per scan in one process (paint test 1.3 ms, most of it the
+  k-nearest query; ground plane 0.4; reading 0.3; placement 0.1); `extract` 6.6-6.9 s = 62-65x
+  real time with 2 workers (the whole command 7.6-7.8 s = 55x), 12.8 s = 33x with 1. With the
+  simulator's roadside scenery (57 M points) 46-50x. numpy loops over rows of 3 when it
+  broadcasts onto (N, 3) points, reduces or copies them row-wise (5-10x slower than by column):
+  the hot paths work by column or through BLAS products.
 """
 
 from __future__ import annotations
