@@ -31,6 +31,7 @@ Rules (parameters in `LanesConfig`):
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -172,24 +173,29 @@ def flip_model(model: LaneModel) -> LaneModel:
 # geometry helpers
 
 
-def _frame(model: LaneModel) -> tuple[cKDTree, np.ndarray, np.ndarray]:
+def _frame(model: LaneModel) -> tuple[np.ndarray, np.ndarray]:
+    """Reference x, y and unit left normals at the stations."""
     ref = np.asarray(model.reference, dtype=np.float64)[:, :2]
     tan = np.gradient(ref, axis=0)
     tan /= np.maximum(np.linalg.norm(tan, axis=1), 1e-12)[:, None]
-    return cKDTree(ref), ref, np.stack([-tan[:, 1], tan[:, 0]], axis=1)
+    return ref, np.stack([-tan[:, 1], tan[:, 0]], axis=1)
 
 
 def _project(model: LaneModel, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Nearest station index and left offset of points."""
-    tree, ref, normal = _frame(model)
-    _, k = tree.query(xy)
+    ref, normal = _frame(model)
+    _, k = cKDTree(ref).query(xy)
     return k, np.sum((xy - ref[k]) * normal[k], axis=1)
 
 
-def _world(model: LaneModel, bid: int, ks: np.ndarray) -> np.ndarray:
-    _, ref, normal = _frame(model)
-    t = {b.id: b.t for b in model.boundaries}[bid]
-    return ref[ks] + normal[ks] * t[ks, None]
+def _lines(model: LaneModel, keep: dict[int, np.ndarray] | None = None) -> list[np.ndarray]:
+    """World x, y of every boundary at its finite stations (or where `keep[id]` is set)."""
+    ref, normal = _frame(model)
+    out = []
+    for b in model.boundaries:
+        ks = np.flatnonzero(np.isfinite(b.t) if keep is None else keep[b.id])
+        out.append(ref[ks] + normal[ks] * b.t[ks, None])
+    return out
 
 
 def _heading(model: LaneModel, k: int) -> float:
@@ -220,7 +226,7 @@ def _branch_cloud(cloud: MarkingCloud, main: LaneModel, ev: Event, kept_lines: l
     # at the gore the branch's inner line is still the road's line: taken from 0.5 m inside it outwards
     near_gore = (k >= ev.k - 2 * gore) & (k <= ev.k + 2 * gore)
     take = (ahead & beside & far) | (near_gore & (sign * (t - t_in) > -cfg.assign_distance_m))
-    _, ref, normal = _frame(main)
+    ref, normal = _frame(main)
     fork = ref[ev.k] + normal[ev.k] * t_in
     take &= np.linalg.norm(xy - fork, axis=1) <= cfg.branch_window_m
     return _subset(cloud, np.flatnonzero(take))
@@ -231,7 +237,7 @@ def _orient_and_cut(branch: LaneModel, main: LaneModel, ev: Event, cfg: LanesCon
     sec = main.sections[ev.section]
     by_id = {b.id: b for b in main.boundaries}
     t_mid = 0.5 * (by_id[sec.boundary_ids[ev.lane]].t[ev.k] + by_id[sec.boundary_ids[ev.lane + 1]].t[ev.k])
-    _, ref, normal = _frame(main)
+    ref, normal = _frame(main)
     fork = ref[ev.k] + normal[ev.k] * t_mid
     width = abs(float(by_id[sec.boundary_ids[ev.lane]].t[ev.k] - by_id[sec.boundary_ids[ev.lane + 1]].t[ev.k]))
     bref = np.asarray(branch.reference)[:, :2]
@@ -271,24 +277,20 @@ def _last_finite(t: np.ndarray) -> float:
 
 
 def _lane_links(prev: LaneModel, nxt: LaneModel) -> list[tuple[int, int]]:
-    """Lanes of prev's last section that go on in nxt's first section (by lateral overlap; one frame)."""
-    pa, na = prev.sections[-1], nxt.sections[0]
-    tp = {b.id: _last_finite(b.t) for b in prev.boundaries}
-    tn = {b.id: _last_finite(b.t[::-1]) for b in nxt.boundaries}
-    pairs = []
-    for i in range(len(pa.boundary_ids) - 1):
-        l0, r0 = tp[pa.boundary_ids[i]], tp[pa.boundary_ids[i + 1]]
-        for j in range(len(na.boundary_ids) - 1):
-            l1, r1 = tn[na.boundary_ids[j]], tn[na.boundary_ids[j + 1]]
-            ov = min(l0, l1) - max(r0, r1)
-            if ov > 0.5 * min(l0 - r0, l1 - r1):
-                pairs.append((i, j))
-    return pairs
+    """Lanes of prev's last section that go on in nxt's first section (the exporter's overlap rule; one frame)."""
+    from lidar2xodr.export_opendrive import link_lanes
+
+    def intervals(model: LaneModel, sec: LaneSection, pick: Callable[[np.ndarray], float]) -> np.ndarray:
+        t = [pick(next(b.t for b in model.boundaries if b.id == i)) for i in sec.boundary_ids]
+        return np.stack([t[1:], t[:-1]], axis=1)
+
+    links = link_lanes(intervals(prev, prev.sections[-1], _last_finite),
+                       intervals(nxt, nxt.sections[0], lambda t: _last_finite(t[::-1])))
+    return sorted((i, j) for j, i in links.items())
 
 
 def _normal_lines(model: LaneModel, cfg: LanesConfig) -> list[np.ndarray]:
     """World x, y of every boundary where both its lanes (if any) have a normal width."""
-    by_id = {b.id: b for b in model.boundaries}
     ok = {b.id: np.isfinite(b.t) for b in model.boundaries}
     for sec in model.sections:
         ks = _stations_of(model, sec)
@@ -300,7 +302,7 @@ def _normal_lines(model: LaneModel, cfg: LanesConfig) -> list[np.ndarray]:
             bad = ks[~(w <= float(np.median(normal)) + cfg.branch_widening_m)]
             for bid in sec.boundary_ids[lane : lane + 2]:
                 ok[bid][bad] = False
-    return [_world(model, bid, np.flatnonzero(ok[bid])) for bid in by_id]
+    return _lines(model, ok)
 
 
 def _subset(cloud: MarkingCloud, sel: np.ndarray) -> MarkingCloud:
@@ -325,7 +327,7 @@ def reframe_start(model: LaneModel, point: np.ndarray, heading: float, blend_m: 
     """
     ref = np.asarray(model.reference, dtype=np.float64).copy()
     s = np.asarray(model.s, dtype=np.float64)
-    _, old, normal_old = _frame(model)
+    old, normal_old = _frame(model)
     dist = (s - s[0]) if not at_end else (s[-1] - s)
     u = np.clip(dist / max(min(blend_m, float(s[-1] - s[0])), 1e-6), 0.0, 1.0)
     fade = 1.0 - u * u * (3.0 - 2.0 * u)
@@ -339,7 +341,7 @@ def reframe_start(model: LaneModel, point: np.ndarray, heading: float, blend_m: 
     ramp = dist * fade * fade
     ref[:, :2] = old + fade[:, None] * shift + sign * ramp[:, None] * turn[None, :]
     out = replace(model, reference=ref, boundaries=[])
-    _, new, normal_new = _frame(out)
+    new, normal_new = _frame(out)
     boundaries = []
     for b in model.boundaries:
         world = old + normal_old * np.asarray(b.t)[:, None]
@@ -404,7 +406,7 @@ def build_network(cloud: MarkingCloud, main: LaneModel, lanes_cfg: LanesConfig, 
         # from its own markings, without the branch's
         k_main, _ = _project(main, xy)
         side = (k_main >= ev.k - int(_GORE_M)) if diverge else (k_main <= ev.k + int(_GORE_M))
-        far = _far_from(xy, [_world(branch, b.id, np.flatnonzero(np.isfinite(b.t))) for b in branch.boundaries],
+        far = _far_from(xy, _lines(branch),
                         lanes_cfg.assign_distance_m)
         try:
             again, why_again = _orient_and_cut(lanes_of(_subset(cloud, np.flatnonzero(side & far)), "continuing road"),
@@ -474,12 +476,10 @@ def save_network(network: RoadNetwork, path: str | Path) -> None:
 
 def load_network(path: str | Path) -> RoadNetwork:
     """Read lanes.json (with or without a network); InputError naming the file and element when malformed."""
-    import json
+    from lidar2xodr.lanes import model_from, read_lanes_json
 
-    from lidar2xodr.lanes import load_lanes, model_from
-
-    main = load_lanes(path)
-    data = json.loads(Path(path).read_text(encoding="utf-8"))
+    data = read_lanes_json(path)
+    main = model_from(data, path)
     net = data.get("network")
     if net is None:
         return RoadNetwork([main], [], list(main.warnings))

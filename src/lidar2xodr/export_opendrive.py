@@ -454,7 +454,7 @@ def _taper(w: np.ndarray, dist: np.ndarray, taper: float) -> np.ndarray:
     return np.minimum(w, cap)
 
 
-def _link(prev_iv: np.ndarray, next_iv: np.ndarray) -> dict[int, int]:
+def link_lanes(prev_iv: np.ndarray, next_iv: np.ndarray) -> dict[int, int]:
     """One-to-one links (next lane -> previous lane) by lateral overlap at a section change."""
     pairs = []
     for i, (r0, l0) in enumerate(prev_iv):
@@ -521,7 +521,7 @@ def _lane_fit(grid_s: np.ndarray, t_data: dict[int, np.ndarray],
     succs = [{} for _ in sections]
     for j in range(1, len(sections)):
         c0, c1 = sections[j - 1][3], sections[j][3]
-        links = _link(edges(j - 1, True), edges(j, False))
+        links = link_lanes(edges(j - 1, True), edges(j, False))
         preds[j] = {jj: i for jj, i in links.items() if (jj >= c1) == (i >= c0)}
         succs[j - 1] = {i: jj for jj, i in preds[j].items()}
 

@@ -1654,6 +1654,11 @@ def _arr(value: object, shape_tail: tuple[int, ...], where: str, name: str) -> n
 
 def load_lanes(path: str | Path) -> LaneModel:
     """Read lanes.json written by `save_lanes`; InputError naming the file and element when malformed."""
+    return model_from(read_lanes_json(path), path)
+
+
+def read_lanes_json(path: str | Path) -> dict:
+    """The parsed lanes.json, checked to be a lane model; InputError naming the file otherwise."""
     path = Path(path)
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
@@ -1663,7 +1668,7 @@ def load_lanes(path: str | Path) -> LaneModel:
         raise InputError(path, f"cannot read the lane model: {exc}") from None
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise InputError(path, f"not a lane model (expected format {FORMAT!r})")
-    return model_from(data, path)
+    return data
 
 
 def model_from(data: dict, path: str | Path) -> LaneModel:
