@@ -143,6 +143,18 @@ def test_corrupt_empty_and_nan_scans_are_skipped_and_counted(small_drive, tmp_pa
     assert ds.stats.dropped_points == len(s["xyz"])
 
 
+def test_scan_with_zero_points_is_skipped_not_a_crash(small_drive, tmp_path: Path) -> None:
+    """A sensor can deliver an empty frame (the simulator did at a U-turn off its terrain); pypcd4
+    reads such a PCD as a (0, n_fields) array, which once crashed the drive reader's transform."""
+    folder = write_drive(small_drive, tmp_path / "d")
+    empty = {"xyz": np.zeros((0, 3)), "intensity": np.zeros(0), "t": np.zeros(0)}
+    save_pcd(folder / "scans" / "000001.pcd", empty)
+    ds = open_dataset(folder)
+    assert [sc.index for sc in scans_of(ds)] == [0, 2]
+    assert [(Path(n).name, why) for n, why in ds.stats.bad_scans] == [("000001.pcd", "no finite point in the scan")]
+    assert ds.read_scan(1)[0] is None
+
+
 def test_nonexistent_and_empty_inputs(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="no such file"):
         open_dataset(tmp_path / "missing")

@@ -89,6 +89,24 @@ def test_cli_bad_input_is_one_line_exit_2(tmp_path: Path) -> None:
         assert len(lines) == 1 and ".xodr" in lines[0]
 
 
+def test_cli_unexpected_exception_is_one_line_exit_3(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A bug inside a stage still ends in one line naming the exception, not a traceback."""
+    import lidar2xodr.evaluation
+
+    def broken(*_args: object, **_kwargs: object) -> None:
+        raise ValueError("matmul: size 3 is different from 15")
+
+    monkeypatch.setattr(lidar2xodr.evaluation, "compare_maps", broken)
+    monkeypatch.delenv("LIDAR2XODR_DEBUG", raising=False)
+    res = runner.invoke(app, ["compare", str(tmp_path / "a.xodr"), str(tmp_path / "b.xodr")])
+    assert res.exit_code == 3
+    lines = [ln for ln in res.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "ValueError: matmul" in lines[0] and "Traceback" not in res.output
+    monkeypatch.setenv("LIDAR2XODR_DEBUG", "1")
+    res = runner.invoke(app, ["compare", str(tmp_path / "a.xodr"), str(tmp_path / "b.xodr")])
+    assert isinstance(res.exception, ValueError)
+
+
 def test_demo_road_is_deterministic_and_as_designed(tmp_path: Path) -> None:
     from lidar2xodr.opendrive import OpenDriveMap
 

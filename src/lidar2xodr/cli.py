@@ -1,13 +1,16 @@
 """The `lidar2xodr` command line: one thin typer command per pipeline stage.
 
 Commands import their stage lazily so `--help` stays fast. Bad input raises InputError, which
-becomes one line on stderr and exit code 2 (never a traceback).
+becomes one line on stderr and exit code 2 (never a traceback). Any other exception is a bug of
+ours: it becomes one line naming the exception and exit code 3, and the traceback is shown only
+with LIDAR2XODR_DEBUG=1 (outputs are written atomically, so nothing half-written is left).
 """
 
 from __future__ import annotations
 
 import functools
 import json
+import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -46,6 +49,14 @@ def _clean_errors(fn: F) -> F:
         except KeyboardInterrupt:
             console.print("[bold red]interrupted[/]")
             raise typer.Exit(130) from None
+        except (typer.Exit, typer.Abort, typer.BadParameter):
+            raise
+        except Exception as exc:
+            if os.environ.get("LIDAR2XODR_DEBUG"):
+                raise
+            console.print(f"[bold red]internal error:[/] {type(exc).__name__}: {exc} (a bug in lidar2xodr, "
+                          "please report it; LIDAR2XODR_DEBUG=1 shows the traceback)", highlight=False, soft_wrap=True)
+            raise typer.Exit(3) from None
 
     return wrapper  # type: ignore[return-value]
 

@@ -45,6 +45,7 @@ def seconds(raw: np.ndarray | None) -> np.ndarray | None:
 def from_structured(arr: np.ndarray, name: str | Path) -> RawScan:
     """A RawScan from a structured array with x, y, z and optional intensity/time fields."""
     names = list(arr.dtype.names or ())
+    arr = arr.reshape(-1)  # pypcd4 gives an empty cloud the shape (0, n_fields)
     xs = [_find(names, (c,)) for c in ("x", "y", "z")]
     if any(c is None for c in xs):
         raise InputError(name, f"scan has no x, y, z fields (fields: {names})")
