@@ -182,6 +182,11 @@ class ExportConfig(_Section):
     plane_max_offset_m: float = Field(15.0, description="ours: ground planes farther from the reference are ignored")
     junction_blend_m: float = Field(30.0, description="ours: a branch road is bent onto the road it leaves or joins "
                                     "over this length from the junction (or its whole length if shorter)")
+    junction_type: Literal["default", "direct"] = Field(
+        "default", description="ours: 'default' = classic junction with connecting roads (read by every reader, "
+        "SUMO 1.15 included); 'direct' = OpenDRIVE 1.7+ direct junction (no connecting roads)")
+    connecting_road_m: float = Field(20.0, description="ours: length of a connecting road cut from the road "
+                                     "end at a classic junction (at most its end lane section, a third of the road)")
 
 
 class EvaluationConfig(_Section):

@@ -102,6 +102,7 @@ through a subclass so scenariogeneration does not replace it by its own quadratu
 
 from __future__ import annotations
 
+import copy
 import math
 import tempfile
 import xml.etree.ElementTree as ET
@@ -127,6 +128,7 @@ _GL_W = 0.5 * _GL_W
 _GEOMETRY_SMOOTH = 1e-6  # P-spline penalty that only bridges data gaps (geometry, widths, elevation)
 _LINK_MIN_OVERLAP_M = 0.3
 _WHERE = "lane model"
+_CUT_EPS = 1e-9
 _LOCAL_TMERC = "+proj=tmerc +lat_0=0 +lon_0=0 +k=1 +x_0=0 +y_0=0 +ellps=WGS84 +units=m +no_defs"
 
 
@@ -151,6 +153,7 @@ class ExportSummary:
     roads: int = 1
     junctions: int = 0
     max_junction_gap_m: float = 0.0
+    connecting_roads: int = 0
 
 
 # --------------------------------------------------------------------------------------------
@@ -787,11 +790,12 @@ def _serialise(odr: xodr.OpenDrive, geo: str, geodetic: bool, date: str | None, 
 # measuring what was written
 
 
-def _measure(data: bytes, joins: list[tuple[int, int]]) -> tuple[float, float, float]:
+def _measure(data: bytes, joins: list[tuple[str, str]]) -> tuple[float, float, float]:
     """Largest leap, kink and |declared - integrated length| between the written geometries.
 
-    Within every road, and across every continuation junction (`joins`: incoming and outgoing road
-    ids) from the incoming road's last geometry to the outgoing road's first.
+    Within every road, and across every join whose reference lines must meet (`joins`: the id of the
+    road whose last geometry ends where the other road's first begins): continuations, and the cuts
+    of classic junctions.
     """
     root = etree.fromstring(data)
     leap = kink = lerr = 0.0
@@ -819,7 +823,7 @@ def _measure(data: bytes, joins: list[tuple[int, int]]) -> tuple[float, float, f
         if prev_end is not None:
             last[road.get("id")] = prev_end
     for a, b in joins:
-        end, start = last[str(a)], first[str(b)]
+        end, start = last[a], first[b]
         leap = max(leap, math.hypot(start[0] - end[0], start[1] - end[1]))
         kink = max(kink, abs(_wrap(start[2] - end[2])))
     return leap, kink, lerr
@@ -1160,6 +1164,353 @@ def _junction_name(links: list[RoadLink]) -> str:
 
 
 # --------------------------------------------------------------------------------------------
+# classic junctions: the written direct junctions rewritten with connecting roads
+
+
+def _fmt(v: float) -> str:
+    return repr(float(v))
+
+
+def _cubic_at(coeffs: list[float], ds: float) -> list[float]:
+    """A cubic record re-expanded at ds: value, slope, curvature/2 and d (same polynomial)."""
+    a, b, c, d = coeffs
+    return [a + ds * (b + ds * (c + ds * d)), b + ds * (2 * c + 3 * ds * d), c + 3 * d * ds, d]
+
+
+def _cut_records(parent: etree._Element, tag: str, key: str, cut: float, head: bool, cubic: bool) -> None:
+    """Keep the records of `parent` (children `tag`, position attribute `key`) before or after `cut`.
+
+    Head: records starting before the cut stay (the first always). Tail: the record active at the cut
+    starts the tail at 0 (a cubic re-expanded there, the same polynomial), later ones move by -cut.
+    """
+    recs = parent.findall(tag)
+    if not recs:
+        return
+    pos = [float(r.get(key)) for r in recs]
+    active = max([i for i, p in enumerate(pos) if p <= cut + _CUT_EPS] or [0])
+    for i, (rec, p) in enumerate(zip(recs, pos, strict=True)):
+        if head:
+            if i > 0 and p >= cut - _CUT_EPS:
+                parent.remove(rec)
+        elif i < active:
+            parent.remove(rec)
+        elif i == active:
+            if cubic and p < cut - _CUT_EPS:
+                vals = _cubic_at([float(rec.get(k)) for k in "abcd"], cut - p)
+                for k, val in zip("abcd", vals, strict=True):
+                    rec.set(k, _fmt(val))
+            rec.set(key, _fmt(0.0) if key == "s" else "0")
+        else:
+            rec.set(key, _fmt(p - cut))
+
+
+def _split_piece(geom: etree._Element, ds: float) -> tuple[etree._Element, etree._Element]:
+    """A paramPoly3 (pRange normalized) cut at arc length ds into two, each in the frame of its start tangent."""
+    pp = geom.find("paramPoly3")
+    u = np.array([float(pp.get(k)) for k in ("aU", "bU", "cU", "dU")])
+    v = np.array([float(pp.get(k)) for k in ("aV", "bV", "cV", "dV")])
+    x, y, h = (float(geom.get(k)) for k in ("x", "y", "hdg"))
+
+    def speed(p: np.ndarray) -> np.ndarray:
+        return np.hypot(u[1] + 2 * u[2] * p + 3 * u[3] * p**2, v[1] + 2 * v[2] * p + 3 * v[3] * p**2)
+
+    def arc(p: float) -> float:
+        return p * float(speed(p * _GL_X) @ _GL_W)
+
+    p = ds / float(geom.get("length"))
+    for _ in range(50):
+        step = (arc(p) - ds) / float(speed(np.array([p]))[0])
+        p -= step
+        if abs(step) < 1e-15:
+            break
+    scale = np.array([1.0, p, p * p, p**3])
+    r = 1.0 - p
+    taylor = np.array([[1, p, p * p, p**3], [0, r, 2 * p * r, 3 * p * p * r],
+                       [0, 0, r * r, 3 * p * r * r], [0, 0, 0, r**3]])
+    tu, tv = taylor @ u, taylor @ v
+    turn = math.atan2(tv[1], tu[1])
+    ct, st = math.cos(turn), math.sin(turn)
+    rows = [(u * scale, v * scale, x, y, h),
+            (np.r_[0.0, ct * tu[1:] + st * tv[1:]], np.r_[0.0, 0.0, -st * tu[2:] + ct * tv[2:]],
+             x + math.cos(h) * tu[0] - math.sin(h) * tv[0], y + math.sin(h) * tu[0] + math.cos(h) * tv[0],
+             _wrap(h + turn))]
+    pieces = []
+    for cu, cv, px, py, ph in rows:
+        piece = copy.deepcopy(geom)
+        sp = np.hypot(cu[1] + 2 * cu[2] * _GL_X + 3 * cu[3] * _GL_X**2,
+                      cv[1] + 2 * cv[2] * _GL_X + 3 * cv[3] * _GL_X**2)
+        piece.set("length", _fmt(sp @ _GL_W))
+        for k, val in (("x", px), ("y", py), ("hdg", ph)):
+            piece.set(k, _fmt(val))
+        ppe = piece.find("paramPoly3")
+        for names, coeffs in ((("aU", "bU", "cU", "dU"), cu), (("aV", "bV", "cV", "dV"), cv)):
+            for k, val in zip(names, coeffs, strict=True):
+                ppe.set(k, _fmt(val))
+        pieces.append(piece)
+    return pieces[0], pieces[1]
+
+
+def _lanes_of(section: etree._Element) -> dict[int, etree._Element]:
+    return {int(lane.get("id")): lane for side in ("left", "right") for lane in section.findall(f"{side}/lane")}
+
+
+def _set_lane_link(lane: etree._Element, kind: str, target: int | None) -> None:
+    """Set (or with None remove) a lane's predecessor/successor, keeping predecessor before successor."""
+    link = lane.find("link")
+    if link is None:
+        link = etree.Element("link")
+        lane.insert(0, link)
+    old = link.find(kind)
+    if old is not None:
+        link.remove(old)
+    if target is not None:
+        el = etree.Element(kind, id=str(target))
+        link.insert(0 if kind == "predecessor" else len(link), el)
+
+
+def _lane_link(lane: etree._Element, kind: str) -> int | None:
+    el = lane.find(f"link/{kind}")
+    return None if el is None else int(el.get("id"))
+
+
+def _split_road(road: etree._Element, cut: float) -> tuple[etree._Element, etree._Element]:
+    """Cut a written road at station `cut` into two roads (deep copies) that continue each other exactly.
+
+    Geometry, elevation, superelevation, laneOffset, road type, lane sections, widths and road marks
+    are cut; a cubic active at the cut is re-expanded there (the same polynomial), a paramPoly3 is cut
+    at that arc length. Lanes keep their links across the cut (a section cut in two: to their own id).
+    """
+    geoms = road.findall("planView/geometry")
+    starts = [float(g.get("s")) for g in geoms]
+    k = max(i for i, s in enumerate(starts) if s <= cut + _CUT_EPS)
+    head, tail = copy.deepcopy(road), copy.deepcopy(road)
+    head_pv, tail_pv = head.find("planView"), tail.find("planView")
+    for g in list(head_pv):
+        head_pv.remove(g)
+    for g in list(tail_pv):
+        tail_pv.remove(g)
+    for g in geoms[:k]:
+        head_pv.append(copy.deepcopy(g))
+    if cut - starts[k] > _CUT_EPS:
+        first, second = _split_piece(geoms[k], cut - starts[k])
+        head_pv.append(first)
+        rest = [second] + [copy.deepcopy(g) for g in geoms[k + 1:]]
+        cut = starts[k] + float(first.get("length"))
+    else:
+        cut = starts[k]
+        rest = [copy.deepcopy(g) for g in geoms[k:]]
+    s = 0.0
+    for g in rest:
+        g.set("s", _fmt(s))
+        s += float(g.get("length"))
+        tail_pv.append(g)
+    head.set("length", _fmt(cut))
+    tail.set("length", _fmt(s))
+
+    for path, tag in (("elevationProfile", "elevation"), ("lateralProfile", "superelevation"), ("lanes", "laneOffset")):
+        for part, is_head in ((head, True), (tail, False)):
+            parent = part.find(path)
+            if parent is not None:
+                _cut_records(parent, tag, "s", cut, is_head, cubic=True)
+    for part, is_head in ((head, True), (tail, False)):
+        _cut_records(part, "type", "s", cut, is_head, cubic=False)
+
+    sec_s = [float(sec.get("s")) for sec in road.findall("lanes/laneSection")]
+    j = max(i for i, s0 in enumerate(sec_s) if s0 <= cut + _CUT_EPS)
+    straddles = cut - sec_s[j] > _CUT_EPS
+    head_secs, tail_secs = head.findall("lanes/laneSection"), tail.findall("lanes/laneSection")
+    for i, sec in enumerate(head_secs):
+        if i > j or (i == j and not straddles):
+            sec.getparent().remove(sec)
+    for i, sec in enumerate(tail_secs):
+        if i < j:
+            sec.getparent().remove(sec)
+        else:
+            sec.set("s", _fmt(0.0 if i == j else sec_s[i] - cut))
+    if straddles:
+        ds = cut - sec_s[j]
+        for lane in _lanes_of(head_secs[j]).values():
+            _set_lane_link(lane, "successor", int(lane.get("id")))
+            _cut_records(lane, "width", "sOffset", ds, head=True, cubic=True)
+            _cut_records(lane, "roadMark", "sOffset", ds, head=True, cubic=False)
+        for lane in _lanes_of(tail_secs[j]).values():
+            _set_lane_link(lane, "predecessor", int(lane.get("id")))
+            _cut_records(lane, "width", "sOffset", ds, head=False, cubic=True)
+            _cut_records(lane, "roadMark", "sOffset", ds, head=False, cubic=False)
+        centre = tail_secs[j].find("center/lane")
+        if centre is not None:
+            _cut_records(centre, "roadMark", "sOffset", ds, head=False, cubic=False)
+    return head, tail
+
+
+def _tidy_records(parent: etree._Element, tag: str, key: str, end: float) -> None:
+    """Records near the cut that now continue their neighbour within 1 um are merged (see `_merge_records`)."""
+    recs = parent.findall(tag)
+    if len(recs) < 2:
+        return
+    starts = np.array([float(r.get(key)) for r in recs])
+    coeffs = np.array([[float(r.get(k)) for k in "abcd"] for r in recs])
+    merged = _merge_records(_Records(starts, coeffs), end)
+    for rec, start, old in zip(recs, starts, coeffs, strict=True):
+        i = np.flatnonzero(merged.starts == start)
+        if len(i) == 0:
+            parent.remove(rec)
+        elif np.any(merged.coeffs[i[0]] != old):
+            for k, val in zip("abcd", merged.coeffs[i[0]], strict=True):
+                rec.set(k, _fmt(val))
+
+
+def _tidy_road(road: etree._Element) -> None:
+    length = float(road.get("length"))
+    for path, tag in (("elevationProfile", "elevation"), ("lateralProfile", "superelevation"), ("lanes", "laneOffset")):
+        parent = road.find(path)
+        if parent is not None:
+            _tidy_records(parent, tag, "s", length)
+    secs = road.findall("lanes/laneSection")
+    ends = [float(sec.get("s")) for sec in secs[1:]] + [length]
+    for sec, end in zip(secs, ends, strict=True):
+        for lane in _lanes_of(sec).values():
+            _tidy_records(lane, "width", "sOffset", end - float(sec.get("s")))
+
+
+def _set_road_link(road: etree._Element, kind: str, element_type: str, element_id: str,
+                   contact: str | None = None) -> None:
+    link = road.find("link")
+    if link is None:
+        link = etree.Element("link")
+        road.insert(0, link)
+    old = link.find(kind)
+    if old is not None:
+        link.remove(old)
+    el = etree.Element(kind, elementType=element_type, elementId=element_id)
+    if contact is not None:
+        el.set("contactPoint", contact)
+    link.insert(0 if kind == "predecessor" else len(link), el)
+
+
+@dataclass
+class _Cut:
+    """One connecting road cut from a road end: `road` (id), at its start or end, for a junction connection."""
+
+    road: str
+    at_end: bool
+    junction: str
+    other: str  # the road at the other side of the connection
+    pairs: list[tuple[int, int]]  # (lane of the incoming road, lane of the outgoing road)
+
+
+def _connection(junction: etree._Element, incoming: str, connecting: str, contact: str,
+                links: list[tuple[int, int]]) -> None:
+    if not links:
+        return
+    conn = etree.SubElement(junction, "connection", id=str(len(junction.findall("connection"))),
+                            incomingRoad=incoming, connectingRoad=connecting, contactPoint=contact)
+    for a, b in links:
+        etree.SubElement(conn, "laneLink", attrib={"from": str(a), "to": str(b)})
+
+
+def _classic_junctions(root: etree._Element, cfg: ExportConfig,
+                       continuations: set[tuple[str, str]]) -> list[tuple[str, str]]:
+    """Rewrite the direct junctions of a written map as classic junctions with connecting roads (in place).
+
+    Each direct connection incoming -> linked becomes a connecting road cut from one of the two roads:
+    from the linked road's start when it is linked once in the junction (a diverge: every branch),
+    else from the incoming road's end (a merge). It is `connecting_road_m` long, at most the end lane
+    section and a third of the road, and snapped to a geometry or section break within 1 m. The cut
+    is exact (the same curves), so the connecting road continues both roads without a gap. Right lanes
+    enter the junction from the incoming road (contactPoint start), left lanes (travelling against s)
+    from the linked road (contactPoint end); connecting-road lanes link both ways, the lanes of the
+    roads outside stay unlinked at the junction (the junction links them). Returns (road whose end,
+    road whose start) pairs whose reference lines must meet: every cut and every continuation.
+    """
+    roads = {r.get("id"): r for r in root.findall("road")}
+    cuts: list[_Cut] = []
+    for junction in root.findall("junction"):
+        conns = junction.findall("connection")
+        inc = [c.get("incomingRoad") for c in conns]
+        out = [c.get("linkedRoad") for c in conns]
+        for c, a, b in zip(conns, inc, out, strict=True):
+            pairs = [(int(ll.get("from")), int(ll.get("to"))) for ll in c.findall("laneLink")]
+            if out.count(b) == 1:
+                cuts.append(_Cut(b, False, junction.get("id"), a, pairs))
+            elif inc.count(a) == 1:
+                cuts.append(_Cut(a, True, junction.get("id"), b, pairs))
+            else:
+                raise InputError(_NET, f"junction {junction.get('id')}: road {a} -> road {b} shares both roads "
+                                       "with other links, so no connecting road can be cut from either")
+    next_id = 1 + max(int(e.get("id")) for e in root.findall("road") + root.findall("junction"))
+    joins: list[tuple[str, str]] = []
+    made: dict[int, str] = {}
+    for at_end in (True, False):  # end cuts first: a road cut at both ends keeps its start geometry in place
+        for q, cut in enumerate(cuts):
+            if cut.at_end != at_end:
+                continue
+            road = roads[cut.road]
+            length = float(road.get("length"))
+            secs = [float(s.get("s")) for s in road.findall("lanes/laneSection")] + [length]
+            n_cuts = sum(c.road == cut.road for c in cuts)
+            end_sec = secs[-1] - secs[-2] if at_end else secs[1] - secs[0]
+            want = min(cfg.connecting_road_m, end_sec, length / (n_cuts + 1))
+            at = length - want if at_end else want
+            snaps = [float(e.get("s")) for e in road.findall("planView/geometry") + road.findall("lanes/laneOffset")]
+            inside = (secs[-2], length - 1.0) if at_end else (1.0, secs[1])
+            near = [s for s in snaps + secs if abs(s - at) <= 0.5 * cfg.lane_record_m and inside[0] <= s <= inside[1]]
+            if near:
+                at = min(near, key=lambda s: abs(s - at))
+            head, tail = _split_road(road, at)
+            for part in (head, tail):
+                _tidy_road(part)
+            conn_road, outer = (tail, head) if at_end else (head, tail)
+            conn_id = str(next_id)
+            next_id += 1
+            made[q] = conn_id
+            conn_road.set("id", conn_id)
+            conn_road.set("junction", cut.junction)
+            conn_road.set("name", f"{road.get('name')} junction {cut.junction}")
+            road.addprevious(head)
+            road.addprevious(tail)
+            road.getparent().remove(road)
+            roads[cut.road] = outer
+            roads[conn_id] = conn_road
+            joins.append((head.get("id"), tail.get("id")))
+            link = conn_road.find("link")
+            if link is not None:
+                conn_road.remove(link)
+            incoming, outgoing = (cut.road, cut.other) if at_end else (cut.other, cut.road)
+            _set_road_link(conn_road, "predecessor", "road", incoming, "end")
+            _set_road_link(conn_road, "successor", "road", outgoing, "start")
+            outer_secs = outer.findall("lanes/laneSection")
+            conn_secs = conn_road.findall("lanes/laneSection")
+            for lane in _lanes_of(outer_secs[-1 if at_end else 0]).values():
+                _set_lane_link(lane, "successor" if at_end else "predecessor", None)
+            far = {(i if at_end else j): (j if at_end else i) for i, j in cut.pairs}
+            for lane_id, lane in _lanes_of(conn_secs[-1 if at_end else 0]).items():
+                _set_lane_link(lane, "successor" if at_end else "predecessor", far.get(lane_id))
+            if (incoming, outgoing) in continuations:
+                joins.append((incoming, conn_id) if not at_end else (conn_id, outgoing))
+    for junction in root.findall("junction"):
+        junction.set("type", "default")
+        for conn in junction.findall("connection"):
+            junction.remove(conn)
+    for q, cut in enumerate(cuts):
+        junction = next(j for j in root.findall("junction") if j.get("id") == cut.junction)
+        conn_id = made[q]
+        conn_road = roads[conn_id]
+        first, last = conn_road.findall("lanes/laneSection")[0], conn_road.findall("lanes/laneSection")[-1]
+        if cut.at_end:  # the incoming road's end was cut: its lanes all enter; the linked road's left lanes
+            right = [(_lane_link(lane, "predecessor"), k) for k, lane in _lanes_of(first).items() if k < 0]
+            left = [(j, i) for i, j in cut.pairs if i > 0]
+            _connection(junction, cut.road, conn_id, "start", sorted(r for r in right if r[0] is not None))
+            _connection(junction, cut.other, conn_id, "end", sorted(left))
+        else:  # the linked road's start was cut
+            right = [(i, j) for i, j in cut.pairs if i < 0]
+            left = [(_lane_link(lane, "successor"), k) for k, lane in _lanes_of(last).items() if k > 0]
+            _connection(junction, cut.other, conn_id, "start", sorted(right))
+            _connection(junction, cut.road, conn_id, "end", sorted(r for r in left if r[0] is not None))
+    return joins
+
+
+# --------------------------------------------------------------------------------------------
 
 
 def export_network(network: RoadNetwork, planes: GroundPlanes | None, cfg: ExportConfig,
@@ -1224,7 +1575,14 @@ def export_network(network: RoadNetwork, planes: GroundPlanes | None, cfg: Expor
     bbox = np.r_[pts.min(axis=0) - margin, pts.max(axis=0) + margin]
 
     data = _serialise(odr, geo, geodetic, _date(planes), bbox)
-    leap, kink, lerr = _measure(data, [(lk.incoming + 1, lk.outgoing + 1) for lk in network.links if lk.continuation])
+    joins = [(str(lk.incoming + 1), str(lk.outgoing + 1)) for lk in network.links if lk.continuation]
+    connecting = 0
+    if network.links and cfg.junction_type == "default":
+        root = etree.fromstring(data, etree.XMLParser(remove_blank_text=True, strip_cdata=False))
+        joins = _classic_junctions(root, cfg, set(joins))
+        connecting = len(root.findall("road")) - n
+        data = etree.tostring(root, pretty_print=True, xml_declaration=True, encoding="UTF-8")
+    leap, kink, lerr = _measure(data, joins)
     gap = _junction_gap(data) if network.links else 0.0
     write_bytes(path, data)
     roads = list(built.values())
@@ -1232,7 +1590,7 @@ def export_network(network: RoadNetwork, planes: GroundPlanes | None, cfg: Expor
                          lane_sections=sum(len(b.fits) for b in roads), max_leap_m=leap, max_kink_rad=kink,
                          max_length_error_m=lerr, max_reference_dev_m=max(b.reference_dev for b in roads),
                          max_border_dev_m=max(b.border_dev for b in roads), roads=n, junctions=len(odr_junctions),
-                         max_junction_gap_m=gap)
+                         max_junction_gap_m=gap, connecting_roads=connecting)
 
 
 def export_opendrive(model: LaneModel, planes: GroundPlanes | None, cfg: ExportConfig, path: Path) -> ExportSummary:
