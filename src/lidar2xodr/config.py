@@ -138,6 +138,9 @@ class LanesConfig(_Section):
                                          "(within this) are one superline; closer parallel lines are duplicates")
     max_link_gap_m: float = Field(500.0, description="ours: the global lookup joins pieces of a line across "
                                   "unobserved stretches up to this long")
+    line_join_gap_m: float = Field(40.0, description="ours: a fitted line that ends where another begins within "
+                                   "this gap, at the same offset, is one line (marking chains break in tight curves "
+                                   "and occlusions, all lines at once, where the global lookup has no neighbour)")
     assign_distance_m: float = Field(0.5, description="ours: marking points this close to a boundary belong to it")
     boundary_smoothing_m: float = Field(40.0, description="ours: shortest wavelength kept in a boundary's t(s) "
                                         "(robust Whittaker smoother)")
@@ -149,6 +152,10 @@ class LanesConfig(_Section):
                                    "make a solid line")
     divider_min_length_m: float = Field(300.0, description="ours: a solid line with lanes on both sides that the "
                                         "ego never crosses separates the two directions when it is that long")
+    divider_short_share: float = Field(0.75, description="ours: on a road shorter than divider_min_length_m, a "
+                                       "line separates the two directions when it has lanes on both sides and the ego "
+                                       "drove both ways beside it (along s right of it, against s left of it), each "
+                                       "over this share of the road's length")
     divider_max_wrong_side_m: float = Field(10.0, description="ours: stations with the ego on the wrong side of a "
                                             "divider candidate it may have (projection noise at a U-turn); a lane "
                                             "change across it lasts far longer")

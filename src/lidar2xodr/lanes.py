@@ -77,6 +77,7 @@ from lidar2xodr.fileio import write_text
 
 FORMAT = "lidar2xodr.lanes/1"
 _CHUNK = 20000
+_ALONG_SLOPE = 0.1  # lines joined across a gap run along the road there (within ~6 deg of the frame)
 _HOP_RADIUS_M = 500.0  # tightest curve a step beside another is allowed to follow (motorway minimum ~ 700 m)
 
 
@@ -841,9 +842,13 @@ def _hold_to(t: np.ndarray, on: np.ndarray, b: int, start: int, end: int) -> Non
     The neighbour is the nearest of those that reach furthest towards the end. Lines start late or
     end early near the ends of a drive because they were not yet (or no longer) observed, not
     because the lane count changes. A line that ends on another one (within 1 m: a lane that
-    closed) is not carried.
+    closed) is not carried. The outermost line (none kept beyond it on that side) is carried only
+    up to the first station where a marking line (any fitted line, its own off-road part included)
+    was measured more than 1 m beyond it: the sensor saw that far there, so the line was absent,
+    not unobserved (a lane that appears at full width near the start of a short drive, a ramp
+    joining). Inner lines are carried as before: a broken line's last dash may end a gap early.
     """
-    span = np.arange(end, start) if end < start else np.arange(start + 1, end + 1)
+    span = np.arange(start - 1, end - 1, -1) if end < start else np.arange(start + 1, end + 1)
     others = [j for j in range(len(t)) if j != b and on[j, start]]
     if not others or len(span) == 0:
         return
@@ -851,6 +856,12 @@ def _hold_to(t: np.ndarray, on: np.ndarray, b: int, start: int, end: int) -> Non
     offset = t[b, start] - t[nb, start]
     if min(abs(t[j, start] - t[b, start]) for j in others) < 1.0:
         return
+    if not any(np.sign(offset) * (t[j, start] - t[b, start]) > 0 for j in others):
+        carried = t[nb, span] + offset
+        measured = np.where(on[:, span] | (np.arange(len(t)) != b)[:, None], t[:, span], np.nan)
+        with np.errstate(invalid="ignore"):
+            seen = np.flatnonzero(np.any(np.sign(offset) * (measured - carried[None, :]) > 1.0, axis=0))
+        span = span[: seen[0] if len(seen) else len(span)]
     span = span[on[nb, span] & ~on[b, span]]
     t[b, span] = t[nb, span] + offset
     on[b, span] = True
@@ -1106,6 +1117,12 @@ def build_lane_model(
     for it in range(3):
         k_pt, t_pt, inside, s_pt = _stations(frame, xyz[:, :2])
         fit = _fit_boundaries(k_pt, t_pt, label, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)))
+        root = _continuations(fit.t, int(round(cfg.line_join_gap_m / step)), cfg.same_line_tolerance_m,
+                              int(round(10.0 / step)))
+        if np.any(root != np.arange(n_sl)):
+            label = np.where(label >= 0, root[np.maximum(label, 0)], -1)
+            superline = root[superline]
+            fit = _fit_boundaries(k_pt, t_pt, label, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)))
         short = np.isfinite(fit.t).sum(axis=1) * step < cfg.min_section_length_m
         n_short = int(np.sum(short & np.isfinite(fit.t).any(axis=1)))
         fit.t[short] = np.nan
@@ -1190,6 +1207,76 @@ def _fit_boundaries(
     return _Fit(out, support)
 
 
+def _continuations(t: np.ndarray, gap_max: int, tol: float, probe: int) -> np.ndarray:
+    """Row each fitted line joins: a line that ends where another begins, at the same offset, goes on in it.
+
+    Marking chains break where every line is hard to follow at once (a tight curve, an occlusion by
+    a truck): the paper's global lookup then finds no neighbour beside both pieces and the boundary
+    would jump between two fits. b continues a when b starts at most `gap_max` stations after a ends
+    (or overlaps it by at most `probe` stations, agreeing within `tol` there) and both reach the
+    same offset within `tol` at the middle of the gap: kept at their offset to a line that is
+    present across the whole gap (the nearest such neighbour), else each extrapolated linearly from
+    its last (first) `probe` stations; both run along the road there (`_ALONG_SLOPE`: a ramp or a
+    crossing line is no continuation in this frame). Pairs are taken best first, one successor and one
+    predecessor per line; chains follow.
+    """
+    n = len(t)
+    fin = np.isfinite(t)
+    rows = [b for b in range(n) if fin[b].sum() >= 2]
+    span = {b: (int(np.flatnonzero(fin[b])[0]), int(np.flatnonzero(fin[b])[-1])) for b in rows}
+    pairs = []
+    for a in rows:
+        a0, ea = span[a]
+        for b in rows:
+            sb, b1 = span[b]
+            if b == a or sb <= a0 or b1 <= ea or sb - ea > gap_max or ea - sb > probe:
+                continue
+            if not (_along(t[a, max(ea - probe, a0) : ea + 1]) and _along(t[b, sb : min(sb + probe, b1) + 1])):
+                continue
+            if sb <= ea:
+                miss = float(np.max(np.abs(t[a, sb : ea + 1] - t[b, sb : ea + 1])))
+            else:
+                miss = _gap_mismatch(t, fin, a, b, ea, sb, probe, span)
+            if miss <= tol:
+                pairs.append((miss, a, b))
+    root = np.arange(n)
+    nxt: set[int] = set()
+    prev: set[int] = set()
+    for _, a, b in sorted(pairs):
+        if a in nxt or b in prev:
+            continue
+        nxt.add(a)
+        prev.add(b)
+        root[b] = a
+    for b in range(n):
+        r = b
+        while root[r] != r:
+            r = root[r]
+        root[b] = r
+    return root
+
+
+def _along(t_end: np.ndarray) -> bool:
+    """The piece of a line runs along the road: its offset changes by at most `_ALONG_SLOPE` per station."""
+    return len(t_end) < 2 or float(np.max(np.abs(np.diff(t_end)))) <= _ALONG_SLOPE
+
+
+def _gap_mismatch(t: np.ndarray, fin: np.ndarray, a: int, b: int, ea: int, sb: int, probe: int,
+                  span: dict[int, tuple[int, int]]) -> float:
+    """Offset difference of line a's end and line b's start across the gap ea..sb (see `_continuations`)."""
+    across = [c for c in span if c not in (a, b) and fin[c, ea : sb + 1].all()]
+    if across:
+        c = min(across, key=lambda c: abs(t[a, ea] - t[c, ea]))
+        return float(abs((t[a, ea] - t[c, ea]) - (t[b, sb] - t[c, sb])))
+    mid = 0.5 * (ea + sb)
+    ka = np.arange(ea - probe, ea + 1)
+    kb = np.arange(sb, sb + probe + 1)
+    if ka[0] < span[a][0] or kb[-1] > span[b][1]:
+        return float("inf")
+    fa, fb = np.polyfit(ka - ea, t[a, ka], 1), np.polyfit(kb - sb, t[b, kb], 1)
+    return float(abs(np.polyval(fa, mid - ea) - np.polyval(fb, mid - sb)))
+
+
 def _bridge_gaps(t: np.ndarray, observed: np.ndarray, gap: int) -> None:
     """Across unobserved stretches longer than `gap` stations a line keeps its lane width to the
     neighbour best observed there (interpolated between the ends), instead of a straight chord in
@@ -1269,8 +1356,13 @@ def _mark_dividers(model: LaneModel, ego: _EgoTrack | None, cfg: LanesConfig) ->
     never driven against s; a solid candidate wins over broken ones, and several broken ones alone
     (every line between the two tracks qualifies) are ambiguous, so none is set. A solid line inside one
     carriageway (an exit lane's, a lane drop's) is short, or crossed, or has the ego on its wrong
-    side, so it is no divider. Without a trajectory no divider is set (the side cannot be known);
-    where several lines qualify, the one nearest the ego bounds its carriageway. Sections where the
+    side, so it is no divider. A road shorter than `divider_min_length_m` cannot show that
+    much line: there `divider_short_share` of its length stands in for it, and every line (solid
+    too) needs the decisive evidence, the ego driving both ways beside it (along s right of it,
+    against s left of it) each over that share; a solid no-lane-change line between lanes of one
+    direction (near a junction) is never driven against s, so it cannot qualify. Without a
+    trajectory no divider is set (the side cannot be known); where several lines qualify,
+    the one nearest the ego bounds its carriageway. Sections where the
     line is the outermost one (the opposite lanes not seen) keep no divider.
     """
     if ego is None or not model.sections or len(ego.k) == 0:
@@ -1283,11 +1375,14 @@ def _mark_dividers(model: LaneModel, ego: _EgoTrack | None, cfg: LanesConfig) ->
             inner.setdefault(bid, []).append(j)
     ok = (ego.k >= 0) & (ego.k < len(model.s))
     k, t_e, direction = ego.k[ok], ego.t[ok], ego.direction[ok]
+    road = float(model.s[-1] - model.s[0])
+    short = road < cfg.divider_min_length_m
+    need = cfg.divider_short_share * road if short else cfg.divider_min_length_m
     closeness: dict[int, float] = {}
     along: dict[int, bool] = {}
     for bid, secs in inner.items():
         length = sum(model.sections[j].s_end - model.sections[j].s_start for j in secs)
-        if length < cfg.divider_min_length_m:
+        if length < need:
             continue
         t_b = by_id[bid].t[k]
         beside = np.isfinite(t_b)
@@ -1298,9 +1393,9 @@ def _mark_dividers(model: LaneModel, ego: _EgoTrack | None, cfg: LanesConfig) ->
         covered = len(np.unique(k[beside])) * step
         wrong = len(np.unique(k[beside][~consistent])) * step
         both = [len(np.unique(k[beside][consistent & (direction[beside] == sign)])) * step for sign in (1, -1)]
-        if by_id[bid].mark_type != "solid" and min(both) < cfg.divider_min_length_m:
+        if (short or by_id[bid].mark_type != "solid") and min(both) < need:
             continue
-        if wrong <= cfg.divider_max_wrong_side_m and covered >= cfg.divider_min_length_m:
+        if wrong <= cfg.divider_max_wrong_side_m and covered >= need:
             closeness[bid] = float(np.median(np.abs(t_e[beside] - t_b[beside])))
             along[bid] = bool(np.median(direction[beside]) > 0)
     for j, sec in enumerate(model.sections):
