@@ -31,10 +31,15 @@ paramPoly3 length mismatches are reported but do not fail the verdict.
 
 from __future__ import annotations
 
+import contextlib
+import importlib.metadata
+import io
 import math
 import os
+import shutil
 import subprocess
 import tempfile
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -50,6 +55,9 @@ KINK_LIMIT_RAD = 0.01
 QC_ENV_VAR = "LIDAR2XODR_QC_VENV"
 QC_TIMEOUT_S = 900
 ARC_STEP_M = 0.05
+SUMO_HOME_DEFAULT = Path("/usr/share/sumo")
+READER_TIMEOUT_S = 600
+PYXODR_RESOLUTION_M = 0.5
 _LEVELS = {1: "error", 2: "warning", 3: "information"}
 _CHECKERS = {".xodr": ("qc_opendrive", "xodrBundle"), ".xosc": ("qc_openscenario", "xoscBundle")}
 
@@ -188,6 +196,43 @@ def _lane_border_points(road: Any, s: float, lane_id: int) -> np.ndarray:
     return road.to_world(np.array([s, s]), t)
 
 
+def _gap(a: np.ndarray, b: np.ndarray) -> float:
+    """Largest distance of two lanes' (inner, outer) border points, matched as they are or swapped."""
+    return float(min(np.linalg.norm(a - b, axis=1).max(), np.linalg.norm(a - b[::-1], axis=1).max()))
+
+
+def _linked_lanes(odr: Any) -> list[tuple[str, str, Any, float, int, Any, float, int]]:
+    """(junction, connection, road, s, lane, other road, s, lane) of every lane link that crosses a junction.
+
+    From each connection's laneLinks (incoming road end -> connecting road at the contact point), and
+    from the lane links of every connecting road into the road it leads to or comes from (its other
+    end, where no connection element names the lanes).
+    """
+    out = []
+    for jid, junction in odr.junctions.items():
+        for conn in junction.connections:
+            inc, other = odr.roads.get(conn.incoming_road), odr.roads.get(conn.connecting_road)
+            if inc is None or other is None or not conn.lane_links:
+                continue
+            s_in, s_out = _contact_s(inc, jid, None), _contact_s(other, jid, conn.contact_point)
+            if s_in is not None and s_out is not None:
+                out += [(jid, conn.id, inc, s_in, a, other, s_out, b) for a, b in conn.lane_links]
+    for road in odr.roads.values():
+        if road.junction in ("", "-1") or not road.lane_sections:
+            continue
+        for link, s_own, section, kind in ((road.predecessor, 0.0, road.lane_sections[0], "predecessor"),
+                                           (road.successor, float(road.length), road.lane_sections[-1], "successor")):
+            other = odr.roads.get(link.element_id) if link is not None and link.element_type == "road" else None
+            if other is None or other.junction == road.junction:
+                continue
+            s_other = float(other.length) if link.contact_point == "end" else 0.0
+            for lane in section.lanes.values():
+                target = getattr(lane, kind)
+                if lane.id != 0 and target is not None:
+                    out.append((road.junction, f"road {road.id} {kind}", road, s_own, lane.id, other, s_other, target))
+    return out
+
+
 def junction_gaps(odr: Any) -> dict[str, Any]:
     """Largest distance between the borders of lanes linked across junctions, and where it is.
 
@@ -196,24 +241,15 @@ def junction_gaps(odr: Any) -> dict[str, Any]:
     """
     worst: dict[str, Any] | None = None
     count = 0
-    for jid, junction in odr.junctions.items():
-        for conn in junction.connections:
-            inc, out = odr.roads.get(conn.incoming_road), odr.roads.get(conn.connecting_road)
-            if inc is None or out is None or not conn.lane_links:
-                continue
-            s_in, s_out = _contact_s(inc, jid, None), _contact_s(out, jid, conn.contact_point)
-            if s_in is None or s_out is None:
-                continue
-            for lane_from, lane_to in conn.lane_links:
-                a = _lane_border_points(inc, s_in, lane_from)
-                b = _lane_border_points(out, s_out, lane_to)
-                if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
-                    continue
-                gap = min(np.linalg.norm(a - b, axis=1).max(), np.linalg.norm(a - b[::-1], axis=1).max())
-                count += 1
-                if worst is None or gap > worst["value"]:
-                    worst = {"junction": jid, "connection": conn.id, "from": lane_from, "to": lane_to,
-                             "value": float(gap)}
+    for jid, conn_id, road_a, s_a, lane_a, road_b, s_b, lane_b in _linked_lanes(odr):
+        a = _lane_border_points(road_a, s_a, lane_a)
+        b = _lane_border_points(road_b, s_b, lane_b)
+        if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+            continue
+        gap = _gap(a, b)
+        count += 1
+        if worst is None or gap > worst["value"]:
+            worst = {"junction": jid, "connection": conn_id, "from": lane_a, "to": lane_b, "value": gap}
     return {"max_junction_gap_m": worst["value"] if worst else 0.0, "worst": worst, "lane_links": count}
 
 
@@ -263,8 +299,119 @@ def continuity(odr: Any) -> dict[str, Any]:
     }
 
 
-def check_file(path: Path) -> dict[str, Any]:
-    """Check an .xodr (ASAM + continuity) or an .xosc (ASAM); the result always holds `ok`."""
+def _sumo_env() -> dict[str, str]:
+    env = dict(os.environ)
+    if not env.get("SUMO_HOME") and SUMO_HOME_DEFAULT.is_dir():
+        env["SUMO_HOME"] = str(SUMO_HOME_DEFAULT)
+    return env
+
+
+def run_netconvert(path: Path) -> dict[str, Any]:
+    """SUMO netconvert reads the map as a user would (`--opendrive-files MAP`, default options).
+
+    Every "Warning:" and "Error:" line is kept verbatim (`--aggregate-warnings -1`, so none is folded
+    into a count); the built network's edges, lanes and connections show that something was read.
+    Without netconvert on PATH: {"available": False, "note": ...}.
+    """
+    exe = shutil.which("netconvert")
+    if exe is None:
+        return {"available": False, "note": "SUMO netconvert not installed (Debian/Ubuntu package sumo): not checked"}
+    env = _sumo_env()
+    out: dict[str, Any] = {"available": True, "reader": "SUMO netconvert"}
+    try:
+        head = subprocess.run([exe, "--version"], capture_output=True, text=True, env=env, timeout=60, check=False)
+        out["version"] = (head.stdout.strip().splitlines() or ["?"])[0].split("Version")[-1].strip()
+    except (OSError, subprocess.TimeoutExpired):
+        out["version"] = "?"
+    with tempfile.TemporaryDirectory(prefix="lidar2xodr-sumo-") as tmp:
+        net = Path(tmp) / "map.net.xml"
+        cmd = [exe, "--opendrive-files", str(path.resolve()), "--aggregate-warnings", "-1", "-o", str(net)]
+        try:
+            proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=tmp, timeout=READER_TIMEOUT_S,
+                                  check=False)
+        except subprocess.TimeoutExpired:
+            return {**out, "ok": False, "returncode": None, "warnings": [],
+                    "errors": [f"netconvert did not finish within {READER_TIMEOUT_S} s"]}
+        except OSError as exc:
+            return {**out, "ok": False, "returncode": None, "warnings": [],
+                    "errors": [f"cannot start netconvert: {exc}"]}
+        lines = [ln.strip() for ln in (proc.stdout + "\n" + proc.stderr).splitlines()]
+        out.update(returncode=proc.returncode, warnings=[ln for ln in lines if ln.startswith("Warning:")],
+                   errors=[ln for ln in lines if ln.startswith("Error:")], edges=0, lanes=0, connections=0)
+        if net.is_file():
+            root = etree.parse(str(net)).getroot()
+            edges = [e for e in root.iter("edge") if e.get("function") != "internal"]
+            out.update(edges=len(edges), lanes=sum(len(e.findall("lane")) for e in edges),
+                       connections=sum(not c.get("from", ":").startswith(":") for c in root.iter("connection")))
+    out["ok"] = out["returncode"] == 0 and not out["warnings"] and not out["errors"]
+    return out
+
+
+def _polyline_distance(points: np.ndarray, poly: np.ndarray) -> np.ndarray:
+    """Distance of each point to a polyline (the segments beside its nearest vertex)."""
+    from scipy.spatial import cKDTree
+
+    _, i = cKDTree(poly).query(points)
+    best = np.full(len(points), np.inf)
+    for a, b in ((np.maximum(i - 1, 0), i), (i, np.minimum(i + 1, len(poly) - 1))):
+        seg = poly[b] - poly[a]
+        u = np.clip(np.sum((points - poly[a]) * seg, axis=1) / np.maximum(np.sum(seg * seg, axis=1), 1e-18), 0, 1)
+        best = np.minimum(best, np.linalg.norm(points - (poly[a] + u[:, None] * seg), axis=1))
+    return best
+
+
+def run_pyxodr(path: Path, odr: Any | None = None) -> dict[str, Any]:
+    """pyxodr (an independent Python reader) loads the map and evaluates everything a user would touch.
+
+    Every road (connecting roads included): reference line, lane offset, heights, every lane's
+    borders, centre and traffic-flow successors; every junction's incoming and outgoing roads (a
+    missing road is an error). Python warnings and anything printed are kept as warnings, exceptions
+    as errors. With the project's reader's `odr`, `max_reference_dev_m` is the largest distance of
+    pyxodr's reference points from ours (the two readers agree on the geometry).
+    """
+    try:
+        from pyxodr.road_objects.network import RoadNetwork
+    except ImportError:
+        return {"available": False, "note": "pyxodr not installed: not checked"}
+    out: dict[str, Any] = {"available": True, "reader": "pyxodr", "version": importlib.metadata.version("pyxodr"),
+                           "warnings": [], "errors": []}
+    printed = io.StringIO()
+    refs: dict[str, np.ndarray] = {}
+    with warnings.catch_warnings(record=True) as caught, contextlib.redirect_stdout(printed), \
+            contextlib.redirect_stderr(printed):
+        warnings.simplefilter("always")
+        try:
+            net = RoadNetwork(str(path), resolution=PYXODR_RESOLUTION_M)
+            roads = net.get_roads(include_connecting_roads=True)
+            for road in roads:
+                refs[str(road.id)] = np.asarray(road.reference_line)[:, :2]
+                _ = road.lane_offset_line, road.z_coordinates
+                for section in road.lane_sections:
+                    for lane in section.lanes:
+                        _ = lane.boundary_line, lane.centre_line, lane.traffic_flow_successors
+            for junction in net.get_junctions():
+                _ = junction.get_incoming_road_ids(), junction.get_outgoing_road_ids(net.road_ids_to_object)
+            out.update(roads=len(roads), junctions=len(net.get_junctions()))
+        except Exception as exc:  # any failure of the reader is its verdict on the file
+            out["errors"].append(f"{type(exc).__name__}: {exc}")
+    out["warnings"] += [f"{w.category.__name__}: {w.message}" for w in caught]
+    out["warnings"] += [ln for ln in printed.getvalue().splitlines() if ln.strip()]
+    if odr is not None and refs and not out["errors"]:
+        dev = 0.0
+        for rid, pts in refs.items():
+            road = odr.roads.get(rid)
+            if road is None or road.length <= 0:
+                continue
+            s = np.linspace(0.0, road.length, max(2, math.ceil(road.length / 0.05) + 1))
+            x, y, _ = road.reference(s)
+            dev = max(dev, float(_polyline_distance(pts, np.column_stack([x, y])).max()))
+        out["max_reference_dev_m"] = dev
+    out["ok"] = not out["warnings"] and not out["errors"]
+    return out
+
+
+def check_file(path: Path, readers: bool = True) -> dict[str, Any]:
+    """Check an .xodr (ASAM + continuity + independent readers) or an .xosc (ASAM); the result always holds `ok`."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in _CHECKERS:
@@ -280,11 +427,15 @@ def check_file(path: Path) -> dict[str, Any]:
     if suffix == ".xodr":
         from lidar2xodr.opendrive import OpenDriveMap
 
+        odr = None
         try:
-            result["continuity"] = continuity(OpenDriveMap.load(path))
+            odr = OpenDriveMap.load(path)
+            result["continuity"] = continuity(odr)
         except InputError as exc:
             result["continuity"] = {"error": str(exc)}
             reasons.append(f"unreadable geometry: {exc.problem}")
+        if readers:
+            result["readers"] = {"netconvert": run_netconvert(path), "pyxodr": run_pyxodr(path, odr)}
     cont = result.get("continuity", {})
     if cont.get("max_leap_m", 0.0) > LEAP_LIMIT_M:
         reasons.append(f"geometry leap {cont['max_leap_m']:.4f} m > {LEAP_LIMIT_M} m")
@@ -314,6 +465,14 @@ def print_check(result: dict[str, Any], console: Console, max_issues: int = 20) 
         table.add_row("largest paramPoly3 length error (m)", f"{cont['max_length_error_m']:.4f}")
         if "junction_gap" in cont.get("worst", {}):
             table.add_row("largest lane border gap across a junction (m)", f"{cont['max_junction_gap_m']:.4f}")
+    for rd in result.get("readers", {}).values():
+        if not rd["available"]:
+            table.add_row("reader", rd["note"])
+            continue
+        text = f"{len(rd['warnings'])} warning(s), {len(rd['errors'])} error(s)"
+        if "max_reference_dev_m" in rd:
+            text += f", reference within {rd['max_reference_dev_m']:.4f} m of ours"
+        table.add_row(f"{rd['reader']} {rd['version']}", text)
     console.print(table)
     groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
     for issue in asam["issues"]:
@@ -328,6 +487,9 @@ def print_check(result: dict[str, Any], console: Console, max_issues: int = 20) 
         console.print(f"  {level}: {message}" + (f" ({where})" if where else ""), highlight=False, soft_wrap=True)
     if len(keys) > max_issues:
         console.print(f"  ... {len(keys) - max_issues} more kind(s) of issue (see --json)")
+    for rd in result.get("readers", {}).values():
+        for line in (rd.get("errors", []) + rd.get("warnings", []))[:max_issues]:
+            console.print(f"  {rd['reader']}: {line}", highlight=False, soft_wrap=True)
     if asam["checkers_skipped_for_version"]:
         console.print(f"  note: {asam['checkers_skipped_for_version']} ASAM rule(s) were skipped because the file's "
                       "version predates them (OpenDRIVE >= 1.7 / OpenSCENARIO >= 1.2 gets them all)", highlight=False)

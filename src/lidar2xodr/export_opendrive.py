@@ -1488,6 +1488,8 @@ def _classic_junctions(root: etree._Element, cfg: ExportConfig,
                 _set_lane_link(lane, "successor" if at_end else "predecessor", far.get(lane_id))
             if (incoming, outgoing) in continuations:
                 joins.append((incoming, conn_id) if not at_end else (conn_id, outgoing))
+    for conn_id in made.values():  # the roads outside the junctions first (ids 1..N), then the connecting roads
+        root.find("junction").addprevious(roads[conn_id])
     for junction in root.findall("junction"):
         junction.set("type", "default")
         for conn in junction.findall("connection"):
