@@ -30,6 +30,7 @@ from lidar2xodr.opendrive import OpenDriveMap, Road
 
 LANE = 3.5
 ERROR_M = 0.2
+DIRECT = ExportConfig(junction_type="direct")
 GRADE = 0.01
 ROLL = 0.02
 
@@ -114,10 +115,11 @@ def written(tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple[RoadNet
     out = tmp_path_factory.mktemp("network")
     res = {}
     for name, make in (("diverge", _diverge), ("merge", _merge)):
-        network, truth = make()
-        planes = _planes(network) if name == "diverge" else None
-        path = out / f"{name}.xodr"
-        res[name] = (network, truth, path, export_network(network, planes, ExportConfig(), path))
+        for key, cfg in ((name, DIRECT), (f"{name}-classic", ExportConfig())):
+            network, truth = make()
+            planes = _planes(network) if name == "diverge" else None
+            path = out / f"{key}.xodr"
+            res[key] = (network, truth, path, export_network(network, planes, cfg, path))
     return res
 
 
@@ -239,7 +241,7 @@ def test_lane_into_the_branch_ends_at_full_width_and_new_lanes_start_at_zero(wri
     one_lane = _diverge()[0]
     one_lane.links = [RoadLink(0, 1, [(0, 0)], continuation=True)]  # A's right lane now leads nowhere
     path2 = path.parent / "ends.xodr"
-    export_network(one_lane, None, ExportConfig(), path2)
+    export_network(one_lane, None, DIRECT, path2)
     a2 = OpenDriveMap.load(path2).roads["1"]
     ls = a2.lane_sections[-1]
     assert abs(ls.lanes[-2].width(np.array([a2.length - ls.s]))[0]) <= 1e-6, "a lane linked to nothing ends at 0"
@@ -280,7 +282,7 @@ def test_lane_borders_keep_their_direction_across_the_junction(written, tmp_path
     b.boundaries.append(Boundary(2, -LANE - np.clip(0.5 - b.s / 200.0, 0.0, None), "solid", 0.15))
     b.sections = [LaneSection(0.0, float(b.s[-1]), [0, 1, 2])]
     network.roads, network.links = [a, b], [RoadLink(0, 1, [(0, 0), (1, 1)], continuation=True)]
-    export_network(network, None, ExportConfig(), tmp_path / "widening.xodr")
+    export_network(network, None, DIRECT, tmp_path / "widening.xodr")
     odr = OpenDriveMap.load(tmp_path / "widening.xodr")
     ra, rb = odr.roads["1"], odr.roads["2"]
     slope_a = ra.lane_sections[-1].lanes[-2].widths(ra.length - ra.lane_sections[-1].s, derivative=1, left=True)[0]
@@ -293,7 +295,7 @@ def test_lane_borders_keep_their_direction_across_the_junction(written, tmp_path
 def test_a_split_without_continuation_anchors_both_branches(tmp_path: Path) -> None:
     network, _ = _diverge()
     network.links = [RoadLink(0, 1, [(0, 0)], continuation=False), RoadLink(0, 2, [(1, 0)], continuation=False)]
-    summary = export_network(network, None, ExportConfig(), tmp_path / "split.xodr")
+    summary = export_network(network, None, DIRECT, tmp_path / "split.xodr")
     assert summary.junctions == 1 and summary.max_junction_gap_m <= 0.01
     odr = OpenDriveMap.load(tmp_path / "split.xodr")
     a, b = odr.roads["1"], odr.roads["2"]
@@ -355,40 +357,161 @@ def test_junction_gap_measures_a_shifted_road(shared_data: Path, tmp_path: Path)
     assert gaps["worst"]["junction"] == junction.get("id")
 
 
+def _two_way() -> RoadNetwork:
+    """A two-way road (one lane each way, lane 0 on the paint between them) with a right exit lane that leaves as C."""
+    sa, xa, h_end, normal, za = _junction_frame()
+    a = _model(sa, xa, [LANE, 0.0, -LANE, -2 * LANE], za)
+    sb, xb, _ = _curve(xa[-1], h_end, 300.0, [(0, 0), (300, 0)])
+    b = _model(sb, xb, [LANE, 0.0, -LANE], za[-1] + GRADE * sb)
+    a.sections[0].divider_id = b.sections[0].divider_id = 1
+    sc, xc, _ = _curve(xa[-1] - 1.5 * LANE * normal, h_end, 150.0, [(0, 0), (60, -1 / 250), (150, -1 / 250)])
+    c = _model(sc, xc, [LANE / 2, -LANE / 2], za[-1] + GRADE * sc)
+    links = [RoadLink(0, 1, [(0, 0), (1, 1)], continuation=True), RoadLink(0, 2, [(2, 0)], continuation=False)]
+    return RoadNetwork([a, b, c], links)
+
+
+def test_classic_junction_has_connecting_roads_cut_from_the_roads(written) -> None:
+    """Default form: each link becomes a connecting road cut from the branch side (diverge: the outgoing roads)."""
+    for name, cut, conns in (("diverge", {"5": ("1", "2"), "6": ("1", "3")},
+                              {("1", "5"): [(-1, -1)], ("1", "6"): [(-2, -1)]}),
+                             ("merge", {"5": ("1", "2"), "6": ("3", "2")},
+                              {("1", "5"): [(-1, -1)], ("3", "6"): [(-1, -1)]})):
+        _, _, path, summary = written[f"{name}-classic"]
+        root = etree.parse(str(path)).getroot()
+        assert [r.get("id") for r in root.findall("road")] == ["1", "2", "3", "5", "6"]
+        assert (summary.roads, summary.junctions, summary.connecting_roads) == (3, 1, 2)
+        junction = root.find("junction")
+        assert (junction.get("id"), junction.get("type"), junction.get("name")) == ("4", "default", name)
+        got = {(c.get("incomingRoad"), c.get("connectingRoad")): [(int(ll.get("from")), int(ll.get("to")))
+                                                                  for ll in c.findall("laneLink")]
+               for c in junction.findall("connection")}
+        assert got == conns
+        assert all(c.get("contactPoint") == "start" and c.get("linkedRoad") is None
+                   for c in junction.findall("connection"))
+        for rid, (pred, succ) in cut.items():
+            road = root.find(f"road[@id='{rid}']")
+            assert road.get("junction") == "4"
+            links = {e.tag: (e.get("elementType"), e.get("elementId"), e.get("contactPoint"))
+                     for e in road.find("link")}
+            assert links == {"predecessor": ("road", pred, "end"), "successor": ("road", succ, "start")}
+            lane = road.find("lanes/laneSection/right/lane")
+            assert lane.find("link/predecessor") is not None and lane.find("link/successor") is not None
+        outer = root.xpath("road[@junction='-1']")
+        assert all(e.get("elementType") == "junction" for r in outer for e in r.find("link"))
+        # the roads outside link no lanes into the junction: its connections and the connecting roads do
+        assert not root.xpath("road[@junction='-1']/lanes/laneSection/*/lane/link/*")
+
+
+@pytest.mark.parametrize("name", ["diverge", "merge"])
+def test_classic_junction_cuts_the_roads_exactly(written, name: str) -> None:
+    """The connecting road and the rest of its road are the direct form's road, cut: same borders, height, roll."""
+    direct = OpenDriveMap.load(written[name][2])
+    classic = OpenDriveMap.load(written[f"{name}-classic"][2])
+    summary = written[f"{name}-classic"][3]
+    assert summary.max_leap_m <= 1e-9 and summary.max_kink_rad <= 1e-9 and summary.max_junction_gap_m <= 1e-9
+    pairs = [("2", "5", False), ("3", "6", False)] if name == "diverge" else [("1", "5", True), ("3", "6", True)]
+    for rid, cid, at_end in pairs:
+        whole, outer, conn = direct.roads[rid], classic.roads[rid], classic.roads[cid]
+        assert 15.0 <= conn.length <= 35.0 and outer.length + conn.length == pytest.approx(whole.length, abs=1e-9)
+        first, second = (outer, conn) if at_end else (conn, outer)
+        s = np.linspace(0.0, whole.length, 301)
+        in_first = s < first.length
+        for part, m, shift in ((first, in_first, 0.0), (second, ~in_first, first.length)):
+            for lane_id in [lid for lid in part.lane_sections[0].lanes if lid != 0]:
+                got = part.to_world(s[m] - shift, part.border_t(s[m] - shift, lane_id))
+                want = whole.to_world(s[m], whole.border_t(s[m], lane_id))
+                assert np.abs(got - want).max() <= 1e-6, f"{name} road {rid} lane {lane_id}"
+            assert np.abs(part.superelevation(s[m] - shift) - whole.superelevation(s[m])).max() <= 1e-9
+
+
+def test_classic_two_way_road_enters_the_junction_from_both_sides(tmp_path: Path) -> None:
+    """Left lanes travel against s: they enter the connecting road from the road after it (contactPoint end)."""
+    path = tmp_path / "two_way.xodr"
+    summary = export_network(_two_way(), None, ExportConfig(), path)
+    assert summary.max_junction_gap_m <= 1e-9 and summary.max_leap_m <= 1e-9
+    junction = etree.parse(str(path)).getroot().find("junction")
+    got = {(c.get("incomingRoad"), c.get("connectingRoad"), c.get("contactPoint")):
+           [(int(ll.get("from")), int(ll.get("to"))) for ll in c.findall("laneLink")]
+           for c in junction.findall("connection")}
+    assert got == {("1", "5", "start"): [(-1, -1)], ("2", "5", "end"): [(1, 1)], ("1", "6", "start"): [(-2, -1)]}
+    gaps = junction_gaps(OpenDriveMap.load(path))
+    # 3 laneLinks, and the connecting roads' own lane links at both ends (road 5: 2 lanes, road 6: 1)
+    assert gaps["lane_links"] == 3 + 2 * 2 + 2 * 1 and gaps["max_junction_gap_m"] <= 1e-9
+
+
 @pytest.mark.slow
-def test_asam_checker_sumo_and_pyxodr_accept_the_network(written, tmp_path: Path) -> None:
+def test_asam_checker_sumo_and_pyxodr_accept_the_classic_junctions(written, tmp_path: Path) -> None:
+    """The default form: 0 ASAM issues, SUMO 1.15 and pyxodr read it without a warning and join the right lanes."""
+    try:
+        find_qc_venv()
+    except InputError as exc:
+        pytest.skip(f"ASAM checker environment missing: {exc}")
+    from lidar2xodr.check import check_file
+
+    two_way = tmp_path / "two_way.xodr"
+    export_network(_two_way(), None, ExportConfig(), two_way)
+    maps = {"diverge": written["diverge-classic"][2], "merge": written["merge-classic"][2], "two_way": two_way}
+    verdicts = {name: check_file(path) for name, path in maps.items()}
+    for name, verdict in verdicts.items():
+        assert verdict["ok"], verdict["reasons"]
+        assert verdict["asam"]["errors"] == 0 and verdict["asam"]["warnings"] == 0, verdict["asam"]["issues"][:5]
+        pyx = verdict["readers"]["pyxodr"]
+        assert pyx["ok"], (name, pyx["errors"], pyx["warnings"])
+        assert pyx["roads"] == 5 and pyx["junctions"] == 1 and pyx["max_reference_dev_m"] <= 0.005
+    sumo = verdicts["diverge"]["readers"]["netconvert"]
+    if not sumo["available"]:
+        pytest.skip(sumo["note"])
+    # SUMO edge "-N" carries road N's right lanes (along s), "N" its left lanes; lane 0 is the rightmost
+    expected = {"diverge": {("-1", "-2", "1", "0"), ("-1", "-3", "0", "0")},
+                "merge": {("-1", "-2", "0", "1"), ("-3", "-2", "0", "0")},
+                "two_way": {("-1", "-2", "1", "0"), ("-1", "-3", "0", "0"), ("2", "1", "0", "0")}}
+    env = dict(os.environ, SUMO_HOME=os.environ.get("SUMO_HOME", "/usr/share/sumo"))
+    for name, path in maps.items():
+        sumo = verdicts[name]["readers"]["netconvert"]
+        assert sumo["ok"] and sumo["returncode"] == 0, (name, sumo["errors"], sumo["warnings"])
+        net = tmp_path / f"{name}.net.xml"
+        subprocess.run([shutil.which("netconvert"), "--opendrive-files", str(path), "-o", str(net)], check=True,
+                       capture_output=True, env=env, timeout=120)
+        joined = {(c.get("from"), c.get("to"), c.get("fromLane"), c.get("toLane"))
+                  for c in etree.parse(str(net)).getroot().findall("connection")
+                  if not c.get("from").startswith(":") and c.get("dir") != "t"}
+        assert joined == expected[name], (name, joined)
+
+
+@pytest.mark.slow
+def test_direct_junctions_pass_the_asam_checker_but_sumo_1_15_needs_ignore_errors(written, tmp_path: Path) -> None:
+    """Why classic is the default: SUMO 1.15 predates direct junctions and demands connectingRoad."""
     try:
         find_qc_venv()
     except InputError as exc:
         pytest.skip(f"ASAM checker environment missing: {exc}")
     from pyxodr.road_objects.network import RoadNetwork as PyxodrNetwork
 
-    from lidar2xodr.check import check_file
+    from lidar2xodr.check import check_file, run_netconvert
 
     for name in ("diverge", "merge"):
         _, _, path, summary = written[name]
-        verdict = check_file(path)
+        verdict = check_file(path, readers=False)
         assert verdict["ok"], verdict["reasons"]
         assert verdict["asam"]["errors"] == 0 and verdict["asam"]["warnings"] == 0, verdict["asam"]["issues"][:5]
         assert verdict["continuity"]["max_junction_gap_m"] == pytest.approx(summary.max_junction_gap_m, abs=1e-9)
         pyx = PyxodrNetwork(str(path), resolution=0.5)
         assert len(pyx.get_roads()) == 3 and len(pyx.get_junctions()) == 1
 
-    netconvert = shutil.which("netconvert")
-    if netconvert is None:
-        pytest.skip("SUMO netconvert not installed")
+    sumo = run_netconvert(written["diverge"][2])
+    if not sumo["available"]:
+        pytest.skip(sumo["note"])
+    assert sumo["returncode"] != 0 and sumo["errors"]
+    assert all(re.search("connectingRoad' is missing", ln) for ln in sumo["errors"]), sumo["errors"]
     env = dict(os.environ, SUMO_HOME=os.environ.get("SUMO_HOME", "/usr/share/sumo"))
     expected = {"diverge": {("-1", "-2"), ("-1", "-3")}, "merge": {("-1", "-2"), ("-3", "-2")}}
     for name in ("diverge", "merge"):
         _, _, path, _ = written[name]
         net = tmp_path / f"{name}.net.xml"
-        # SUMO 1.15 predates direct junctions (OpenDRIVE 1.7): it requires connectingRoad, which the 1.8 schema
-        # forbids there; with --ignore-errors it joins the roads at the junction node and guesses the lanes
-        run = subprocess.run([netconvert, "--opendrive-files", str(path), "--ignore-errors", "-o", str(net)],
-                             capture_output=True, text=True, env=env, timeout=120)
+        # with --ignore-errors it joins the roads at the junction node and guesses the lanes
+        run = subprocess.run([shutil.which("netconvert"), "--opendrive-files", str(path), "--ignore-errors", "-o",
+                              str(net)], capture_output=True, text=True, env=env, timeout=120)
         assert run.returncode == 0, run.stderr
-        errors = [ln for ln in (run.stdout + run.stderr).splitlines() if ln.startswith("Error")]
-        assert errors and all(re.search("connectingRoad' is missing", ln) for ln in errors), errors
         root = etree.parse(str(net)).getroot()
         joined = {(c.get("from"), c.get("to")) for c in root.findall("connection") if not c.get("from").startswith(":")}
         assert expected[name] <= joined, joined
