@@ -3,12 +3,22 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import pytest
+from rich.console import Console
 from typer.testing import CliRunner
 
-from lidar2xodr.check import KINK_LIMIT_RAD, LEAP_LIMIT_M, check_file, find_qc_venv
+from lidar2xodr.check import (
+    KINK_LIMIT_RAD,
+    LEAP_LIMIT_M,
+    check_file,
+    find_qc_venv,
+    print_check,
+    run_netconvert,
+    run_pyxodr,
+)
 from lidar2xodr.cli import app
 from lidar2xodr.errors import InputError
 
@@ -134,3 +144,50 @@ def test_bad_input_and_missing_checker(tmp_path: Path, monkeypatch: pytest.Monke
         check_file(path)
     res = CliRunner().invoke(app, ["check", str(path)])
     assert res.exit_code == 2 and "make setup" in res.output and "Traceback" not in res.output
+
+
+def _steep_map(tmp_path: Path) -> Path:
+    """One straight road climbing 50 %: valid OpenDRIVE, but SUMO warns about the grade."""
+    path = _map(tmp_path, _line(0, 0, 0, 0, 100), 100, "steep.xodr")
+    text = path.read_text().replace("<lanes>", '<elevationProfile><elevation s="0" a="0" b="0.5" c="0" d="0"/>'
+                                    "</elevationProfile><lanes>")
+    path.write_text(text)
+    return path
+
+
+def test_reader_warnings_are_reported_verbatim_not_judged(tmp_path: Path) -> None:
+    res = check_file(_steep_map(tmp_path))
+    assert res["ok"] is True and res["asam"]["errors"] == 0  # the readers never fail the verdict
+    sumo, pyx = res["readers"]["netconvert"], res["readers"]["pyxodr"]
+    assert pyx["available"] and pyx["ok"] and pyx["roads"] == 1 and pyx["max_reference_dev_m"] < 1e-3
+    if not sumo["available"]:
+        pytest.skip(sumo["note"])
+    assert sumo["returncode"] == 0 and not sumo["errors"] and not sumo["ok"]
+    assert any(ln.startswith("Warning: Edge") and "has a grade of 50.00%" in ln for ln in sumo["warnings"]), sumo
+    assert sumo["edges"] == 1 and sumo["lanes"] == 1
+
+
+def test_absent_readers_are_skipped_with_a_note(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = _map(tmp_path, _line(0, 0, 0, 0, 50), 50)
+    monkeypatch.setenv("PATH", str(tmp_path))
+    monkeypatch.setitem(sys.modules, "pyxodr.road_objects.network", None)
+    sumo, pyx = run_netconvert(path), run_pyxodr(path)
+    assert sumo == {"available": False, "note": sumo["note"]} and "netconvert not installed" in sumo["note"]
+    assert pyx["available"] is False and "pyxodr" in pyx["note"]
+    console = Console(record=True, width=200)
+    print_check({"file": str(path), "asam": {"checker": "qc_opendrive", "errors": 0, "warnings": 0, "issues": [],
+                                             "checkers_completed": 1, "checkers_skipped": 0, "checkers_failed": 0,
+                                             "checkers_skipped_for_version": 0},
+                 "readers": {"netconvert": sumo, "pyxodr": pyx}, "ok": True, "reasons": []}, console)
+    assert "netconvert not installed" in console.export_text()
+
+
+def test_pyxodr_failure_is_an_error_of_the_reader(tmp_path: Path) -> None:
+    """A junction naming a road that does not exist: pyxodr cannot find the outgoing road."""
+    path = _map(tmp_path, _line(0, 0, 0, 0, 50), 50)
+    text = path.read_text().replace("</OpenDRIVE>", '<junction id="7" name="j"><connection id="0" incomingRoad="1" '
+                                    'connectingRoad="99" contactPoint="start"/></junction></OpenDRIVE>')
+    path.write_text(text)
+    pyx = run_pyxodr(path)
+    assert pyx["available"] and not pyx["ok"]
+    assert pyx["errors"] and "99" in pyx["errors"][0], pyx
