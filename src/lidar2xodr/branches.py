@@ -19,7 +19,9 @@ Rules (parameters in `LanesConfig`):
   continues A exactly, without the lane that leaves or joins) plus the branch (C). C is built by the
   lanes stage from the marking points beside the lost lane's side beyond the junction (before it, for
   a merge) that lie farther than `assign_distance_m` from every line kept in B, plus the lost lane's
-  own two lines over 15 m at the junction, so C starts at the gore. C is kept when it has lanes over
+  own two lines over 15 m on the road's side of the junction (where the lane still belongs to the
+  road), so C starts at the gore; of these only points near a marking line (candidate) of at least
+  `branch_min_line_m` are used (clutter at a U-turn would bend C's axis). C is kept when it has lanes over
   `branch_min_length_m`, its junction end lies within two lane widths of the lost lane's middle and its
   heading there is within 30 deg of the road's; it is oriented to travel like the road (a diverging
   branch starts at the junction, a merging one ends there) and cut to start (end) on the junction's
@@ -210,26 +212,50 @@ def _heading(model: LaneModel, k: int) -> float:
 
 
 def _branch_cloud(cloud: MarkingCloud, main: LaneModel, ev: Event, kept_lines: list[np.ndarray],
-                  cfg: LanesConfig) -> MarkingCloud:
-    """Marking points of the branch: beyond the junction on the lost side, not on a line kept in B."""
+                  cfg: LanesConfig, markings_cfg: MarkingsConfig) -> MarkingCloud:
+    """Marking points of the branch (see the module docstring), without paint no marking line chains."""
     sec = main.sections[ev.section]
     xy = np.asarray(cloud.xyz)[:, :2]
     k, t = _project(main, xy)
     by_id = {b.id: b for b in main.boundaries}
-    inner = sec.boundary_ids[ev.lane] if ev.side == "right" else sec.boundary_ids[ev.lane + 1]
+    inner, outer = sec.boundary_ids[ev.lane], sec.boundary_ids[ev.lane + 1]
+    if ev.side == "left":
+        inner, outer = outer, inner
     sign = 1.0 if ev.side == "left" else -1.0
     gore = int(round(_GORE_M / max(float(main.s[1] - main.s[0]), 1e-6)))
-    ahead = k >= ev.k if ev.kind == "diverge" else k <= ev.k
+    diverge = ev.kind == "diverge"
+    ahead = k >= ev.k if diverge else k <= ev.k
     t_in = by_id[inner].t[ev.k]
     beside = sign * (t - t_in) > cfg.assign_distance_m
     far = _far_from(xy, kept_lines, cfg.assign_distance_m * 2)
-    # at the gore the branch's inner line is still the road's line: taken from 0.5 m inside it outwards
-    near_gore = (k >= ev.k - 2 * gore) & (k <= ev.k + 2 * gore)
-    take = (ahead & beside & far) | (near_gore & (sign * (t - t_in) > -cfg.assign_distance_m))
+    # on the road's side of the junction the lane is still the road's: its own two lines over the gore length
+    lane_side = (k >= ev.k - gore) & (k <= ev.k) if diverge else (k >= ev.k) & (k <= ev.k + gore)
+    with np.errstate(invalid="ignore"):
+        on_lane = (np.abs(t - by_id[inner].t[k]) <= cfg.assign_distance_m) | (
+            np.abs(t - by_id[outer].t[k]) <= cfg.assign_distance_m)
+    take = (ahead & beside & far) | (lane_side & on_lane)
     ref, normal = _frame(main)
     fork = ref[ev.k] + normal[ev.k] * t_in
     take &= np.linalg.norm(xy - fork, axis=1) <= cfg.branch_window_m
-    return _subset(cloud, np.flatnonzero(take))
+    return _chained(_subset(cloud, np.flatnonzero(take)), cfg, markings_cfg)
+
+
+def _chained(cloud: MarkingCloud, cfg: LanesConfig, markings_cfg: MarkingsConfig) -> MarkingCloud:
+    """The points within `assign_distance_m` of a marking line (candidate) of `branch_min_line_m` or more."""
+    from lidar2xodr.lanes import _label_by_candidates
+    from lidar2xodr.markings import find_candidates
+
+    if len(cloud.xyz) == 0:
+        return cloud
+    lines = []
+    for c in find_candidates(cloud.xyz, markings_cfg):
+        ctr = np.asarray(c.centers)[:, :2]
+        if len(ctr) > 1 and float(np.sum(np.linalg.norm(np.diff(ctr, axis=0), axis=1))) >= cfg.branch_min_line_m:
+            lines.append(c)
+    if not lines:
+        return _subset(cloud, np.zeros(0, dtype=np.int64))
+    label = _label_by_candidates(np.asarray(cloud.xyz)[:, :2], lines, np.zeros(len(lines), dtype=np.int64), cfg)
+    return _subset(cloud, np.flatnonzero(label >= 0))
 
 
 def _orient_and_cut(branch: LaneModel, main: LaneModel, ev: Event, cfg: LanesConfig) -> tuple[LaneModel | None, str]:
@@ -391,7 +417,7 @@ def build_network(cloud: MarkingCloud, main: LaneModel, lanes_cfg: LanesConfig, 
     branch: LaneModel | None = None
     why = ""
     xy = np.asarray(cloud.xyz)[:, :2]
-    sub = _branch_cloud(cloud, main, ev, _normal_lines(kept, lanes_cfg), lanes_cfg)
+    sub = _branch_cloud(cloud, main, ev, _normal_lines(kept, lanes_cfg), lanes_cfg, markings_cfg)
     if len(sub.xyz) < 50:
         why = "too few markings beside the road there"
     else:
