@@ -2,7 +2,11 @@
 
 Run with `make bench` (or `.venv/bin/python bench/run.py [--quick] [--maps NAME ...]`). Results go
 to bench-out/results.json and a Markdown table printed at the end, which is pasted into
-BENCHMARKS.md together with this command. Uses the CLI as a user would.
+BENCHMARKS.md together with this command. Uses the CLI as a user would. A second table gives what
+`lidar2xodr check` says about every built map (the real aiMotive one included): ASAM errors and
+warnings, largest leap, kink and junction gap, and the independent readers: SUMO netconvert's
+warning and error count (n/a when not installed) and whether pyxodr loaded it cleanly, their
+messages verbatim below the table.
 """
 
 from __future__ import annotations
@@ -40,6 +44,26 @@ def run(cmd: list[str]) -> tuple[int, float, str]:
     return proc.returncode, time.perf_counter() - t0, (proc.stdout + proc.stderr)[-2000:]
 
 
+def check_row(xodr: Path, out_json: Path) -> dict:
+    """`lidar2xodr check` on a built map: ASAM errors, continuity, and what SUMO netconvert and pyxodr said."""
+    rc, t, log = run(CLI + ["check", str(xodr), "--json", str(out_json)])
+    if rc not in (0, 1) or not out_json.exists():
+        return {"check_error": log.strip().splitlines()[-1] if log.strip() else f"exit {rc}"}
+    res = json.loads(out_json.read_text())
+    cont = res.get("continuity", {})
+    row = {"check_ok": res["ok"], "check_s": round(t, 1), "asam_errors": res["asam"]["errors"],
+           "asam_warnings": res["asam"]["warnings"], "leap_m": cont.get("max_leap_m"),
+           "kink_rad": cont.get("max_kink_rad"), "junction_gap_m": cont.get("max_junction_gap_m")}
+    sumo = res.get("readers", {}).get("netconvert", {})
+    pyx = res.get("readers", {}).get("pyxodr", {})
+    row["sumo_warnings"] = len(sumo["warnings"]) if sumo.get("available") else None
+    row["sumo_errors"] = len(sumo["errors"]) if sumo.get("available") else None
+    row["sumo_messages"] = (sumo.get("errors", []) + sumo.get("warnings", []))[:10]
+    row["pyxodr_ok"] = pyx.get("ok") if pyx.get("available") else None
+    row["pyxodr_messages"] = (pyx.get("errors", []) + pyx.get("warnings", []))[:10]
+    return row
+
+
 def bench_map(name: str, xodr: Path, out: Path, length_m: float, lane_target: float) -> dict:
     drive = out / name / "drive"
     row: dict = {"map": name, "length_m": length_m}
@@ -54,6 +78,7 @@ def bench_map(name: str, xodr: Path, out: Path, length_m: float, lane_target: fl
     if rc != 0:
         row["error"] = "build: " + log.strip().splitlines()[-1]
         return row
+    row.update(check_row(xodr_out, out / name / "check.json"))
     metrics_path = out / name / "metrics.json"
     rc, _, log = run(CLI + ["compare", str(xodr_out), str(xodr), "--json", str(metrics_path)])
     if not metrics_path.exists():
@@ -117,10 +142,9 @@ def bench_aimotive(out: Path) -> dict:
     xodr = out / "aimotive" / "map.xodr"
     rc, t, log = run(CLI + ["build", str(sample), "-o", str(xodr), "--odometry", "lidar",
                             "--report", str(out / "aimotive" / "report")])
-    row: dict = {"build_s": round(t, 1), "rc": rc}
+    row: dict = {"map": "aimotive (real, LiDAR odometry)", "build_s": round(t, 1), "rc": rc}
     if rc == 0:
-        rc2, _, log2 = run(CLI + ["check", str(xodr), "--json", str(out / "aimotive" / "check.json")])
-        row["check"] = json.loads((out / "aimotive" / "check.json").read_text()) if rc2 in (0, 1) else log2[-300:]
+        row.update(check_row(xodr, out / "aimotive" / "check.json"))
     else:
         row["error"] = log.strip().splitlines()[-1] if log.strip() else "?"
     return row
@@ -228,10 +252,21 @@ def main() -> None:
     print("\n| " + " | ".join(cols) + " |\n|" + "---|" * len(cols))
     for r in rows:
         print("| " + " | ".join(_fmt(r.get(c, "")) for c in cols) + " |")
+    checked = rows + ([results["aimotive"]] if "map" in results["aimotive"] else [])
+    cols = ["map", "asam_errors", "asam_warnings", "leap_m", "kink_rad", "junction_gap_m", "sumo_warnings",
+            "sumo_errors", "pyxodr_ok", "check_error"]
+    print("\n| " + " | ".join(cols) + " |\n|" + "---|" * len(cols))
+    for r in checked:
+        print("| " + " | ".join(_fmt(r.get(c, "")) for c in cols) + " |")
+    for r in checked:
+        for line in r.get("sumo_messages", []) + r.get("pyxodr_messages", []):
+            print(f"  {r['map']}: {line}")
 
 
 def _fmt(v: object) -> str:
-    return f"{v:.3f}" if isinstance(v, float) else str(v)
+    if isinstance(v, float):
+        return f"{v:.3f}" if abs(v) >= 1e-3 or v == 0.0 else f"{v:.1e}"
+    return "n/a" if v is None else str(v)
 
 
 if __name__ == "__main__":
