@@ -20,6 +20,16 @@ Two parts:
   of its `to` lane at the connecting (linked) road's contact point, in 3D (reported, not judged:
   overlap zones of real maps may be wide on purpose).
 
+* `readers` (.xodr; `readers=False` skips them): two independent readers load the map as a user
+  would. `netconvert`: SUMO's converter with its default options (SUMO_HOME defaults to
+  /usr/share/sumo), every "Warning:"/"Error:" line verbatim and the edges/lanes/connections it
+  built; absent netconvert gives {"available": False, "note": ...}. `pyxodr`: the map loaded and
+  everything evaluated (references, lane borders, successors, junction roads); Python warnings and
+  printed lines are warnings, exceptions errors; `max_reference_dev_m` is how far its reference
+  points lie from ours. Reported, never part of the verdict: a reader's limits are not the file's
+  fault (SUMO 1.15 cannot read OpenDRIVE 1.8 direct junctions, and warns about a lane that appears
+  on a two-way road, which the standard requires to be unlinked; see export_opendrive.py).
+
 Verdict: `ok` is False when the ASAM checker reports at least one error, when the project's
 OpenDRIVE reader cannot evaluate the geometry (`continuity.error`), or a leap exceeds
 `LEAP_LIMIT_M` (1 cm) or a kink exceeds `KINK_LIMIT_RAD` (10 mrad). Why: a 1 cm gap already makes

@@ -88,11 +88,32 @@ Networks (`export_network`; `export_opendrive` is a network of one road, same by
   synthetic 0.2 m error: 2 mm off the markings beyond 30 m; constraints alone leave 1.5 cm there
   and overshoot 10 cm nearer). The summary's deviations compare with the model as given, so the
   snap shows in them.
-- Measured on the written XML: leap and kink within roads and across continuation junctions, and
-  `max_junction_gap_m` (check.junction_gaps on the project's reader: the largest 3D distance between
-  the borders of lanes linked by a laneLink). SUMO 1.15 netconvert predates direct junctions: it
-  demands connectingRoad, which the 1.8 schema forbids there (the ASAM checker rejects it), so it
-  needs --ignore-errors, and then joins the roads at the junction node and guesses the lanes.
+- Junction form (`junction_type`). Default "default": a classic junction with connecting roads, which
+  every reader understands; "direct" keeps the OpenDRIVE 1.7+ direct junction described above. Why:
+  SUMO 1.15 netconvert (Debian's, and any SUMO before direct-junction support) predates direct
+  junctions: it demands connectingRoad, which the 1.8 schema forbids there, so it stops with an
+  error, and with --ignore-errors joins the roads at a node and guesses the lanes. The classic form
+  is derived from the written direct one by cutting, not refitting (`_classic_junctions`): each link
+  gets a connecting road of ~`connecting_road_m` (20 m; snapped to the nearest lane-record, section or
+  geometry break within half a lane record, at most the end lane section and a third of the road)
+  cut from the branch side: the outgoing road's start at a diverge, the incoming road's end at a merge.
+  The cut keeps the curves (a paramPoly3 is cut at that arc length and re-expressed from the cut,
+  cubic records are re-expanded there; records that then repeat their neighbour within 1 um are
+  merged, as the ASAM checker flags them), so the map is the direct one to ~1e-12 m and `compare`
+  does not change. Right lanes enter from the incoming road (contactPoint start), left lanes
+  (against s) from the road after the connecting road (contactPoint end; two connections for one
+  connecting road, which OpenDRIVE 1.8 allows). Connecting-road lanes link to the lanes on both
+  sides; the roads outside link no lanes into the junction. Road ids 1..N stay the carriageway roads,
+  junction ids follow, connecting roads come last (written after the outer roads).
+- Measured on the written XML: leap and kink within roads, across continuations and across every
+  cut, and `max_junction_gap_m` (check.junction_gaps on the project's reader: the largest 3D distance
+  between the borders of lanes linked across a junction, at both ends of a connecting road).
+- What SUMO 1.15 still warns about (reported by `check`, not fixable in the file): a lane that
+  appears inside a two-way road ("Lane '-1#1_0' is not connected from any incoming edge"). SUMO gives
+  a lane at most one successor and warns at a node with more than one incoming edge, which a two-way
+  road's section boundary always has (the left lanes' edge); the link that would silence it (the
+  appearing lane as a successor of its neighbour) is an ASAM error (road.lane.link.new_lane_appear).
+  One-way roads with appearing lanes read without a warning.
 
 Written with scenariogeneration. Patches after writing (lxml), because scenariogeneration cannot
 express them: the header date (it writes now()), north/south/east/west (it writes 0), a vendor,
