@@ -1437,8 +1437,8 @@ def _classic_junctions(root: etree._Element, cfg: ExportConfig,
     Each direct connection incoming -> linked becomes a connecting road cut from one of the two roads:
     from the linked road's start when it is linked once in the junction (a diverge: every branch),
     else from the incoming road's end (a merge). It is `connecting_road_m` long, at most the end lane
-    section and a third of the road, and snapped to a geometry or section break within 1 m. The cut
-    is exact (the same curves), so the connecting road continues both roads without a gap. Right lanes
+    section and a third of the road, snapped to the nearest laneOffset record, section or geometry
+    break within half a lane record (so the lane records stay as fitted). The cut is exact (the same curves), so the connecting road continues both roads without a gap. Right lanes
     enter the junction from the incoming road (contactPoint start), left lanes (travelling against s)
     from the linked road (contactPoint end); connecting-road lanes link both ways, the lanes of the
     roads outside stay unlinked at the junction (the junction links them). Returns (road whose end,
