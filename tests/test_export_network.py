@@ -439,6 +439,21 @@ def test_classic_two_way_road_enters_the_junction_from_both_sides(tmp_path: Path
     assert gaps["lane_links"] == 3 + 2 * 2 + 2 * 1 and gaps["max_junction_gap_m"] <= 1e-9
 
 
+def test_classic_junction_on_a_short_branch(tmp_path: Path) -> None:
+    """A 12 m branch: its connecting road takes half of it at most, both parts stay real roads, gap 0."""
+    network, _ = _diverge()
+    c = network.roads[2]
+    keep = c.s <= 12.0
+    bounds = [Boundary(b.id, b.t[keep], b.mark_type, b.mark_width) for b in c.boundaries]
+    network.roads[2] = LaneModel(s=c.s[keep], reference=c.reference[keep], boundaries=bounds,
+                                 sections=[LaneSection(0.0, 12.0, [0, 1])])
+    summary = export_network(network, None, ExportConfig(), tmp_path / "short.xodr")
+    odr = OpenDriveMap.load(tmp_path / "short.xodr")
+    conn, rest = odr.roads["6"], odr.roads["3"]
+    assert conn.junction == "4" and 1.0 <= conn.length <= 6.0 + 1e-3 and rest.length >= 6.0 - 1e-3
+    assert summary.max_junction_gap_m <= 1e-9 and summary.max_leap_m <= 1e-9
+
+
 @pytest.mark.slow
 def test_asam_checker_sumo_and_pyxodr_accept_the_classic_junctions(written, tmp_path: Path) -> None:
     """The default form: 0 ASAM issues, SUMO 1.15 and pyxodr read it without a warning and join the right lanes."""

@@ -196,7 +196,7 @@ class ExportConfig(_Section):
         "default", description="ours: 'default' = classic junction with connecting roads (read by every reader, "
         "SUMO 1.15 included); 'direct' = OpenDRIVE 1.7+ direct junction (no connecting roads)")
     connecting_road_m: float = Field(20.0, description="ours: length of a connecting road cut from the road "
-                                     "end at a classic junction (at most its end lane section, a third of the road)")
+                                     "end at a classic junction (at most its end lane section and half the road)")
 
 
 class EvaluationConfig(_Section):

@@ -95,7 +95,7 @@ Networks (`export_network`; `export_opendrive` is a network of one road, same by
   error, and with --ignore-errors joins the roads at a node and guesses the lanes. The classic form
   is derived from the written direct one by cutting, not refitting (`_classic_junctions`): each link
   gets a connecting road of ~`connecting_road_m` (20 m; snapped to the nearest lane-record, section or
-  geometry break within half a lane record, at most the end lane section and a third of the road)
+  geometry break within half a lane record, at most the end lane section and half the road)
   cut from the branch side: the outgoing road's start at a diverge, the incoming road's end at a merge.
   The cut keeps the curves (a paramPoly3 is cut at that arc length and re-expressed from the cut,
   cubic records are re-expanded there; records that then repeat their neighbour within 1 um are
@@ -1437,12 +1437,14 @@ def _classic_junctions(root: etree._Element, cfg: ExportConfig,
     Each direct connection incoming -> linked becomes a connecting road cut from one of the two roads:
     from the linked road's start when it is linked once in the junction (a diverge: every branch),
     else from the incoming road's end (a merge). It is `connecting_road_m` long, at most the end lane
-    section and a third of the road, snapped to the nearest laneOffset record, section or geometry
-    break within half a lane record (so the lane records stay as fitted). The cut is exact (the same curves), so the connecting road continues both roads without a gap. Right lanes
-    enter the junction from the incoming road (contactPoint start), left lanes (travelling against s)
-    from the linked road (contactPoint end); connecting-road lanes link both ways, the lanes of the
-    roads outside stay unlinked at the junction (the junction links them). Returns (road whose end,
-    road whose start) pairs whose reference lines must meet: every cut and every continuation.
+    section and half the road (a third when both ends are cut), snapped to the nearest laneOffset
+    record, section or geometry break within half a lane record or half its length (so the lane
+    records stay as fitted). The cut is exact (the same curves), so the connecting road continues
+    both roads without a gap. Right lanes enter the junction from the incoming road (contactPoint
+    start), left lanes (travelling against s) from the linked road (contactPoint end); the
+    connecting road's lanes link both ways, the lanes of the roads outside stay unlinked at the
+    junction (the junction links them). Returns (road whose end, road whose start) pairs whose
+    reference lines must meet: every cut and every continuation.
     """
     roads = {r.get("id"): r for r in root.findall("road")}
     cuts: list[_Cut] = []
@@ -1474,8 +1476,9 @@ def _classic_junctions(root: etree._Element, cfg: ExportConfig,
             want = min(cfg.connecting_road_m, end_sec, length / (n_cuts + 1))
             at = length - want if at_end else want
             snaps = [float(e.get("s")) for e in road.findall("planView/geometry") + road.findall("lanes/laneOffset")]
-            inside = (secs[-2], length - 1.0) if at_end else (1.0, secs[1])
-            near = [s for s in snaps + secs if abs(s - at) <= 0.5 * cfg.lane_record_m and inside[0] <= s <= inside[1]]
+            inside = (max(secs[-2], 1.0), length - 1.0) if at_end else (1.0, min(secs[1], length - 1.0))
+            reach = 0.5 * min(cfg.lane_record_m, want)
+            near = [s for s in snaps + secs if abs(s - at) <= reach and inside[0] <= s <= inside[1]]
             if near:
                 at = min(near, key=lambda s: abs(s - at))
             head, tail = _split_road(road, at)
