@@ -565,6 +565,24 @@ def test_corrupt_scans_skipped_until_too_many(drive: Drive, tmp_path: Path) -> N
         extract_markings(open_dataset(folder), ExtractionConfig(max_bad_scan_share=0.1))
 
 
+def test_empty_scans_are_counted_not_bad(drive: Drive, tmp_path: Path) -> None:
+    """A third of the scans empty (a crest, a U-turn facing off the map) is a drive, not a broken one."""
+    from pypcd4 import PointCloud
+
+    folder = write_drive(drive, tmp_path / "d")
+    empty = PointCloud.from_points([np.zeros(0, np.float32)] * 4 + [np.zeros(0)], ["x", "y", "z", "intensity", "t"],
+                                   [np.float32] * 4 + [np.float64])
+    for k in (3, 4, 5, 6):
+        empty.save(folder / "scans" / f"{k:06d}.pcd")
+    rep = ExtractionReport()
+    extract_markings(open_dataset(folder), ExtractionConfig(max_bad_scan_share=0.1), report=rep)
+    assert rep.empty_scans == 4 and not rep.bad_scans and rep.scans_used == len(drive.scans) - 4
+    for k in range(len(drive.scans)):
+        empty.save(folder / "scans" / f"{k:06d}.pcd")
+    with pytest.raises(InputError, match=f"every one of the {len(drive.scans)} scans is empty"):
+        extract_markings(open_dataset(folder), ExtractionConfig())
+
+
 def _cloud_bytes(cloud: MarkingCloud) -> bytes:
     return b"".join(np.ascontiguousarray(a).tobytes() for a in (
         cloud.xyz, cloud.intensity, cloud.scan_index, cloud.time, cloud.planes.points_world,

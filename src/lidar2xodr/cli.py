@@ -274,6 +274,7 @@ def extract(
         cloud = extract_markings(dataset, cfg, progress=lambda n: bar.advance(task, n), report=rep)
     save_markings(cloud, output)
     skipped = f", {len(rep.bad_scans)} skipped" if rep.bad_scans else ""
+    skipped += f", {rep.empty_scans} empty" if rep.empty_scans else ""
     dropped = f", {rep.dropped_points:,} non-finite points dropped" if rep.dropped_points else ""
     speed = f" (start {rep.start_speed_mps:.1f} m/s)" if rep.start_speed_mps is not None else ""
     rtf = rep.duration_s / rep.wall_s if rep.wall_s > 0 else 0.0

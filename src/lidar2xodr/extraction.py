@@ -71,6 +71,7 @@ class ExtractionReport:
     scans_total: int = 0
     scans_used: int = 0
     bad_scans: list[tuple[str, str]] = field(default_factory=list)
+    empty_scans: int = 0
     points_read: int = 0
     dropped_points: int = 0
     ground_fallbacks: int = 0
@@ -810,13 +811,16 @@ def extract_markings(
     if len(dataset.stats.bad_scans) > cfg.max_bad_scan_share * rep.scans_total:
         _too_many_bad(dataset, cfg)
     if rep.scans_used == 0:
-        raise InputError(dataset.path, "no readable scan")
+        empty = dataset.stats.empty_scans
+        raise InputError(dataset.path, f"every one of the {empty} scans is empty" if empty and empty == len(dataset)
+                         else "no readable scan")
     if state["threshold"] is None and not local:
         set_threshold()
     if local and local_thr:
         rep.threshold = float(np.median(local_thr))
     flush(poses.finish())
     rep.bad_scans = list(dataset.stats.bad_scans)
+    rep.empty_scans = dataset.stats.empty_scans
     rep.points_read = dataset.stats.points_read
     rep.dropped_points = dataset.stats.dropped_points
     rep.start_speed_mps = poses.odo.start_speed if poses.odo is not None else None

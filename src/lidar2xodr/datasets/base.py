@@ -5,7 +5,9 @@ point) with intensity normalised to 0..1 and absolute per-point times in seconds
 has them. Decisions shared by every reader:
 
 - Non-finite points (NaN/inf in x, y, z, intensity or time) are dropped and counted in
-  `stats.dropped_points`; a scan left with no point is skipped and counted as bad.
+  `stats.dropped_points`; a scan left with no point is skipped and counted in `stats.empty_scans`.
+  An empty scan is not a broken file: organised clouds store "no return" as NaN, and a sensor
+  facing open sky over a crest or off the end of the paved world returns nothing.
 - A file that cannot be read (truncated, corrupt) is skipped with a warning and listed in
   `stats.bad_scans`; the extraction stage aborts when more than `max_bad_scan_share` are bad.
 - A scan without an intensity field, or scans whose stamps go backwards, are an InputError
@@ -37,6 +39,7 @@ class ReadStats:
     """What the reader had to drop: bad scans (name, reason) and non-finite points."""
 
     bad_scans: list[tuple[str, str]] = field(default_factory=list)
+    empty_scans: int = 0
     dropped_points: int = 0
     scans_read: int = 0
     points_read: int = 0
@@ -223,6 +226,7 @@ class ScanFileDataset:
         last_stamp = -np.inf
         for k, stamp, part, payload in results:
             self.stats.bad_scans += part.bad_scans
+            self.stats.empty_scans += part.empty_scans
             self.stats.dropped_points += part.dropped_points
             self.stats.points_read += part.points_read
             if stamp is None:
@@ -251,7 +255,8 @@ class ScanFileDataset:
             xyz, inten = xyz[ok], inten[ok]
             times = None if times is None else times[ok]
         if len(xyz) == 0:
-            self._bad(name, "no finite point in the scan")
+            self.stats.empty_scans += 1
+            log.info("skipping scan %s: no finite point", name)
             return None
         if self.estimate_mount:
             self._estimate_mount(xyz)
