@@ -1,6 +1,6 @@
 """`lidar2xodr check`: what a simulator user needs to know before loading a map or a scenario.
 
-Two parts:
+Three parts:
 
 * `asam`: the official ASAM quality checker (asam-qc-opendrive for .xodr, asam-qc-openscenarioxml for
   .xosc) run as a subprocess from its own virtual environment (it pins numpy<2). The environment is
