@@ -18,10 +18,12 @@ Rules (parameters in `LanesConfig`):
 - Roads: the measured road before the junction (A) and after it (B: the same reference line, so B
   continues A exactly, without the lane that leaves or joins) plus the branch (C). C is built by the
   lanes stage from the marking points beside the lost lane's side beyond the junction (before it, for
-  a merge) that lie farther than `assign_distance_m` from every line kept in B, plus the lost lane's
-  own two lines over 15 m on the road's side of the junction (where the lane still belongs to the
-  road), so C starts at the gore; of these only points near a marking line (candidate) of at least
-  `branch_min_line_m` are used (clutter at a U-turn would bend C's axis). C is kept when it has lanes over
+  a merge) that lie farther than `assign_distance_m` from every line kept in B, plus, so C starts at
+  the gore, for a diverge every point from 0.5 m inside the lost lane's inner line outwards within
+  30 m of the junction, for a merge only the lost lane's own two lines over 15 m after the junction
+  (a ramp that converges at an angle must not share its axis with the road's edge before it); of
+  these only points near a marking line (candidate) of at least `branch_min_line_m` are used
+  (clutter at a U-turn would bend C's axis). C is kept when it has lanes over
   `branch_min_length_m`, its junction end lies within two lane widths of the lost lane's middle and its
   heading there is within 30 deg of the road's; it is oriented to travel like the road (a diverging
   branch starts at the junction, a merging one ends there) and cut to start (end) on the junction's
@@ -228,12 +230,18 @@ def _branch_cloud(cloud: MarkingCloud, main: LaneModel, ev: Event, kept_lines: l
     t_in = by_id[inner].t[ev.k]
     beside = sign * (t - t_in) > cfg.assign_distance_m
     far = _far_from(xy, kept_lines, cfg.assign_distance_m * 2)
-    # on the road's side of the junction the lane is still the road's: its own two lines over the gore length
-    lane_side = (k >= ev.k - gore) & (k <= ev.k) if diverge else (k >= ev.k) & (k <= ev.k + gore)
-    with np.errstate(invalid="ignore"):
-        on_lane = (np.abs(t - by_id[inner].t[k]) <= cfg.assign_distance_m) | (
-            np.abs(t - by_id[outer].t[k]) <= cfg.assign_distance_m)
-    take = (ahead & beside & far) | (lane_side & on_lane)
+    if diverge:
+        # at the gore the branch's inner line is still the road's line: taken from 0.5 m inside it outwards
+        near_gore = (k >= ev.k - 2 * gore) & (k <= ev.k + 2 * gore)
+        gore_pts = near_gore & (sign * (t - t_in) > -cfg.assign_distance_m)
+    else:
+        # after the junction the lane is the road's: only its own two lines over the gore length (the
+        # road's edge before the junction is no part of a ramp that converges at an angle)
+        with np.errstate(invalid="ignore"):
+            on_lane = (np.abs(t - by_id[inner].t[k]) <= cfg.assign_distance_m) | (
+                np.abs(t - by_id[outer].t[k]) <= cfg.assign_distance_m)
+        gore_pts = (k >= ev.k) & (k <= ev.k + gore) & on_lane
+    take = (ahead & beside & far) | gore_pts
     ref, normal = _frame(main)
     fork = ref[ev.k] + normal[ev.k] * t_in
     take &= np.linalg.norm(xy - fork, axis=1) <= cfg.branch_window_m

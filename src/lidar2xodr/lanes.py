@@ -1150,7 +1150,11 @@ def build_lane_model(
         )
     pts = _Points(k_pt, t_pt, s_pt, inside, label, xyz[:, 2])
     model = _assemble(cloud, pieces, superline, frame, fit, structure, pts, warnings, cfg)
-    _mark_dividers(model, _ego_track(frame, ego, model), cfg)
+    solid_rows = np.zeros(len(fit.t), dtype=bool)
+    solid_rows[active] = solid
+    first = int(np.argmin(np.linalg.norm(frame.xy - model.reference[0, :2], axis=1)))
+    divided = _divided_left(fit.t, structure.on, solid_rows)[first : first + len(model.s)]
+    _mark_dividers(model, _ego_track(frame, ego, model), cfg, divided)
     counts = [len(sec.boundary_ids) - 1 for sec in model.sections]
     if len(set(counts)) > 1:
         model.warnings.append(
@@ -1305,9 +1309,16 @@ def _bridge_gaps(t: np.ndarray, observed: np.ndarray, gap: int) -> None:
 
 
 def _ego_offsets(frame: Frame, ego: np.ndarray | None) -> np.ndarray | None:
+    """The ego's offset at every station (NaN beyond its samples), from the samples that travel the way
+    it first travelled on the frame: a drive that turns round passes the stations twice, on a divided
+    road once on each carriageway, and one curve through both passes would jump between them."""
     if ego is None or len(ego) < 2:
         return None
     s, t, inside = frame.project(ego)
+    ds = np.gradient(s)
+    moving = inside & (np.abs(ds) > 1e-3)
+    if moving.sum() >= 2:
+        inside = moving & (np.sign(ds) == np.sign(ds[np.flatnonzero(moving)[0]]))
     if inside.sum() < 2:
         return None
     order = np.argsort(s[inside])
@@ -1342,13 +1353,27 @@ def _ego_track(frame: Frame, ego: np.ndarray | None, model: LaneModel) -> _EgoTr
     return _EgoTrack(k[keep], t_e[keep], np.sign(ds[keep]).astype(np.int64))
 
 
-def _mark_dividers(model: LaneModel, ego: _EgoTrack | None, cfg: LanesConfig) -> None:
+def _divided_left(t_fit: np.ndarray, on: np.ndarray, solid: np.ndarray) -> np.ndarray:
+    """Stations where another carriageway lies left of the kept one beyond a median: the nearest
+    measured line left of the leftmost kept line is solid (its left edge line) and has a line beyond it."""
+    with np.errstate(invalid="ignore"):
+        top = np.max(np.where(on, t_fit, -np.inf), axis=0)
+        beyond = ~on & np.isfinite(t_fit) & (t_fit > top[None, :] + 0.5)
+    count = beyond.sum(axis=0)
+    nearest = np.argmin(np.where(beyond, t_fit, np.inf), axis=0)
+    return (count >= 2) & solid[nearest]
+
+
+def _mark_dividers(model: LaneModel, ego: _EgoTrack | None, cfg: LanesConfig,
+                   divided: np.ndarray | None = None) -> None:
     """Set `LaneSection.divider_id` where a painted line separates the two directions.
 
-    Evidence (right-hand traffic), none of it from the trajectory's shape connecting markings:
-    the line is solid, has lanes on both sides over sections of at least `divider_min_length_m`
-    together, and every trajectory sample beside it lies on the side of its own travel direction
-    (right of it while moving along s, left while moving against s), over at least
+    Evidence (right-hand traffic), none of it from the trajectory's shape connecting markings, and
+    only from trajectory samples on the carriageway (within 1 m of its outermost lines: beyond a
+    median the ego drives another carriageway): the line is solid, has lanes on both sides over
+    sections of at least `divider_min_length_m` together, and every trajectory sample beside it
+    lies on the side of its own travel direction (right of it while moving along s, left while
+    moving against s), over at least
     `divider_min_length_m` of stations, up to `divider_max_wrong_side_m` of stations (projection
     noise where a U-turn ends the drive): the ego never crossed it. A broken (or other non-solid)
     centre line qualifies only when the ego drove both ways beside it, each over
@@ -1363,7 +1388,11 @@ def _mark_dividers(model: LaneModel, ego: _EgoTrack | None, cfg: LanesConfig) ->
     direction (near a junction) is never driven against s, so it cannot qualify. Without a
     trajectory no divider is set (the side cannot be known); where several lines qualify,
     the one nearest the ego bounds its carriageway. Sections where the
-    line is the outermost one (the opposite lanes not seen) keep no divider.
+    line is the outermost one (the opposite lanes not seen) keep no divider. A line beside which
+    another carriageway lies left of this one beyond a median over more than half its stations
+    (`divided`, from `_divided_left`) is no divider whatever the ego did: under right-hand traffic
+    that carriageway is the opposite direction, so this one is one-way (a drive that turned round
+    on it drove it the wrong way).
     """
     if ego is None or not model.sections or len(ego.k) == 0:
         return
@@ -1373,7 +1402,12 @@ def _mark_dividers(model: LaneModel, ego: _EgoTrack | None, cfg: LanesConfig) ->
     for j, sec in enumerate(model.sections):
         for bid in sec.boundary_ids[1:-1]:
             inner.setdefault(bid, []).append(j)
-    ok = (ego.k >= 0) & (ego.k < len(model.s))
+    ok = np.flatnonzero((ego.k >= 0) & (ego.k < len(model.s)))
+    # only samples on this carriageway: beyond a median the ego drives another one
+    ts = np.array([b.t for b in model.boundaries])
+    with np.errstate(invalid="ignore"):
+        top, bottom = np.nanmax(ts, axis=0), np.nanmin(ts, axis=0)
+    ok = ok[(ego.t[ok] <= top[ego.k[ok]] + 1.0) & (ego.t[ok] >= bottom[ego.k[ok]] - 1.0)]
     k, t_e, direction = ego.k[ok], ego.t[ok], ego.direction[ok]
     road = float(model.s[-1] - model.s[0])
     short = road < cfg.divider_min_length_m
@@ -1383,6 +1417,8 @@ def _mark_dividers(model: LaneModel, ego: _EgoTrack | None, cfg: LanesConfig) ->
     for bid, secs in inner.items():
         length = sum(model.sections[j].s_end - model.sections[j].s_start for j in secs)
         if length < need:
+            continue
+        if divided is not None and float(np.mean(divided[np.isfinite(by_id[bid].t)])) > 0.5:
             continue
         t_b = by_id[bid].t[k]
         beside = np.isfinite(t_b)
