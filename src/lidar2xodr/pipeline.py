@@ -222,10 +222,14 @@ def write_checked_map(
 def _verdict_line(verdict: dict[str, Any]) -> str:
     asam = verdict.get("asam", {})
     cont = verdict.get("continuity", {})
-    return (
+    line = (
         f"ASAM errors {asam.get('errors', '?')}, largest leap {cont.get('max_leap_m', float('nan')):.4f} m, "
         f"largest kink {cont.get('max_kink_rad', float('nan')):.4f} rad"
     )
+    for rd in verdict.get("readers", {}).values():
+        if rd.get("available"):
+            line += f"; {rd['reader']}: {len(rd['warnings'])} warning(s), {len(rd['errors'])} error(s)"
+    return line
 
 
 def print_summary(result: BuildResult, console: Console) -> None:
