@@ -280,7 +280,9 @@ def extract(
     rtf = rep.duration_s / rep.wall_s if rep.wall_s > 0 else 0.0
     out.print(f"wrote {output}: {rep.marking_points:,} marking points from {rep.scans_used}/{rep.scans_total} scans"
               f"{skipped}{dropped}; threshold {rep.threshold:.2f} ({'auto' if rep.threshold_auto else 'fixed'}), "
-              f"{rep.outliers_removed:,} outliers removed; {rep.odometry} poses{speed}, {rep.drive_length_m:.0f} m "
+              f"{rep.outliers_removed:,} outliers and {rep.moving_removed:,} points of {rep.moving_trails} moving "
+              f"objects ({rep.moving_removed / max(rep.marking_points_raw, 1):.2%}) removed; "
+              f"{rep.odometry} poses{speed}, {rep.drive_length_m:.0f} m "
               f"in {rep.duration_s:.1f} s; {rep.points_read / max(rep.wall_s, 1e-9):,.0f} points/s, "
               f"{rtf:.2f}x real time")
     for warning in rep.warnings:

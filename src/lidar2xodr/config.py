@@ -84,6 +84,30 @@ class ExtractionConfig(_Section):
     workers: int | Literal["auto"] = Field(
         "auto", description="ours: processes reading and filtering scans in parallel (same bytes as 1); "
         "auto = the CPUs this process may use, at most 8")
+    moving_filter: bool = Field(True, description="ours: remove the trails of moving objects (the low, bright "
+                                "rear of a vehicle driving with the ego) from the accumulated marking cloud")
+    moving_voxel_m: float = Field(1.0, description="ours: a point is transient when its cell of this size (xy) "
+                                  "holds points of at most moving_max_scans scans; static paint is re-observed "
+                                  "as the sensor approaches it (simple_highway: 2 % of paint, 90 % of the trail)")
+    moving_max_scans: int = Field(2, ge=1, description="ours: ... at most this many scans")
+    moving_link_m: float = Field(1.0, description="ours: transient points this close (xy) form one trail seed")
+    moving_min_scans: int = Field(3, ge=2, description="ours: a trail seed spans at least this many scans")
+    moving_min_speed_mps: float = Field(3.0, description="ours: a trail seed moves at least this fast (world frame)")
+    moving_min_travel_m: float = Field(3.0, description="ours: ... and at least this far over its time span")
+    moving_seed_rms_m: float = Field(0.25, description="ours: RMS distance along the motion between a seed's points "
+                                     "and its constant-velocity fit (a vehicle's rear is a thin face moving on a "
+                                     "straight space-time line; paint seen through a detection window scatters "
+                                     "by the window's depth); widened by speed x scan period / sqrt(12) when the "
+                                     "points carry only the scan's time")
+    moving_gate_m: float = Field(0.5, description="ours: a trail grows by transient points within this distance "
+                                 "along the motion of its position predicted at their time (widened by speed x "
+                                 "scan period / 2 without per-point times) ...")
+    moving_half_width_m: float = Field(1.5, description="ours: ... and within this distance across it (half a "
+                                       "vehicle width plus margin; a lane line beside a lane-centred car is 1.75 m "
+                                       "away)")
+    moving_max_gap_s: float = Field(0.5, description="ours: a trail ends when no point joins it for this long")
+    moving_fit_window_s: float = Field(1.0, description="ours: the trail's velocity is refitted on its points "
+                                       "within this time of its newest (oldest) end while it grows")
 
 
 class MarkingsConfig(_Section):
