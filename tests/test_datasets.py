@@ -153,6 +153,10 @@ def test_scan_with_zero_points_is_skipped_not_a_crash(small_drive, tmp_path: Pat
     assert not ds.stats.bad_scans and ds.stats.empty_scans == 1
     scan, stats = ds.read_scan(1)
     assert scan is None and stats.empty_scans == 1
+    one = {"xyz": np.array([[5.0, 0.0, -1.8]]), "intensity": np.array([0.3]), "t": np.array([100.05])}
+    save_pcd(folder / "scans" / "000001.pcd", one)  # one return: its time alone cannot stamp the scan
+    ds = open_dataset(folder)
+    assert [sc.index for sc in scans_of(ds)] == [0, 2] and ds.stats.empty_scans == 1
 
 
 def test_nonexistent_and_empty_inputs(tmp_path: Path) -> None:

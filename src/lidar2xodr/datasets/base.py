@@ -7,7 +7,9 @@ has them. Decisions shared by every reader:
 - Non-finite points (NaN/inf in x, y, z, intensity or time) are dropped and counted in
   `stats.dropped_points`; a scan left with no point is skipped and counted in `stats.empty_scans`.
   An empty scan is not a broken file: organised clouds store "no return" as NaN, and a sensor
-  facing open sky over a crest or off the end of the paved world returns nothing.
+  facing open sky over a crest or off the end of the paved world returns nothing. A scan whose
+  points all carry the same time in a format with per-point times (one return) counts as empty
+  too: without a stamp it cannot be placed.
 - A file that cannot be read (truncated, corrupt) is skipped with a warning and listed in
   `stats.bad_scans`; the extraction stage aborts when more than `max_bad_scan_share` are bad.
 - A scan without an intensity field, or scans whose stamps go backwards, are an InputError
@@ -69,6 +71,7 @@ class RawScan:
     intensity: np.ndarray | None
     times: np.ndarray | None = None
     stamp: float | None = None
+    untimed: bool = False  # the format has per-point times, but this scan's all share one value
 
 
 class CorruptScan(Exception):
@@ -254,9 +257,10 @@ class ScanFileDataset:
         if not ok.all():
             xyz, inten = xyz[ok], inten[ok]
             times = None if times is None else times[ok]
-        if len(xyz) == 0:
+        if len(xyz) == 0 or (raw.untimed and raw.stamp is None):
             self.stats.empty_scans += 1
-            log.info("skipping scan %s: no finite point", name)
+            log.info("skipping scan %s: %s", name, "no finite point" if len(xyz) == 0 else
+                     "its points share one time (a scan of one return cannot be placed in time)")
             return None
         if self.estimate_mount:
             self._estimate_mount(xyz)

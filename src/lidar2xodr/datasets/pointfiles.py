@@ -52,10 +52,12 @@ def from_structured(arr: np.ndarray, name: str | Path) -> RawScan:
     xyz = np.column_stack([np.asarray(arr[c], dtype=np.float64) for c in xs])  # type: ignore[index]
     inten_name = _find(names, INTENSITY_NAMES)
     time_name = _find(names, TIME_NAMES)
+    times = seconds(None if time_name is None else np.asarray(arr[time_name]))
     return RawScan(
         xyz=xyz,
         intensity=None if inten_name is None else np.asarray(arr[inten_name]),
-        times=seconds(None if time_name is None else np.asarray(arr[time_name])),
+        times=times,
+        untimed=time_name is not None and times is None and len(xyz) > 0,
     )
 
 
