@@ -250,30 +250,6 @@ def test_structures_above_sensor_are_scanned_but_not_in_the_preview(tmp_path: Pa
     assert len(z) > 10000 and z.max() < LIVOX_HORIZON.mount_xyz[2] + 0.2
 
 
-def test_ground_goes_on_beyond_the_end_of_the_map(tmp_path: Path) -> None:
-    """Rays leaving a dead end land on grass below the road; the ground never covers the pavement."""
-    from lidar2xodr.simulation import reflectivity as R
-    from lidar2xodr.simulation.scene import APRON_M, build_world
-
-    odr = OpenDriveMap.load(tiny_map(tmp_path / "m.xodr", 200.0))
-    world = build_world(odr, ["1"], seed=0)
-    grass = world.tri[world.material == R.GRASS].astype(np.float64) + world.origin
-    beyond = grass[grass[:, :, 0].min(axis=1) > 210.0]
-    assert len(beyond) and beyond[:, :, 0].max() > 200.0 + 0.8 * APRON_M
-    assert np.allclose(beyond[:, :, 2], -0.7)
-    scene = world.window(np.array([[200.0, -3.0]]), 150.0)
-    origins = np.tile(np.array([[195.0, -5.0, 1.8]]) - scene.origin, (3, 1)).astype(np.float32)
-    dirs = np.array([[0.98, 0.0, -0.2], [0.0, 0.98, -0.2], [0.0, -0.98, -0.2]])
-    dirs = (dirs / np.linalg.norm(dirs, axis=1, keepdims=True)).astype(np.float32)
-    t, mat, _, _ = scene.cast(origins, dirs)
-    assert np.all(np.isfinite(t)), "a ray off the end of the map hit nothing"
-    ahead = origins[0] + t[0] * dirs[0] + scene.origin
-    assert mat[0] == R.GRASS and ahead[0] > 200.0 and abs(ahead[2] + 0.7) < 1e-3
-    down = np.array([[190.0, -3.0, 5.0], [190.0, -6.0, 5.0]]) - scene.origin
-    t, mat, _, _ = scene.cast(down.astype(np.float32), np.tile(np.float32([[0, 0, -1]]), (2, 1)))
-    assert np.all(mat == R.ASPHALT) and np.allclose(t, 5.0, atol=0.02), "ground above the road"
-
-
 def test_objects_match_the_scans_and_vehicles_occlude(drive: Drive) -> None:
     truth = _objects(drive.root / "truth" / "objects.csv")
     seen = _objects(drive.root / "objects.csv")

@@ -22,10 +22,6 @@ Decisions:
   road, facing each direction's traffic). Placement is seeded per road id.
 - With the `roadside` option: terrain, vegetation, roadside signs and noise barriers beyond the
   verges (roadside.py).
-- Where the built network ends (a road end with no built road's pavement just beyond it), flat grass
-  ground 0.7 m below the end (the verges' outer height) covers everything within `APRON_M` of the
-  end: the ego turns around there, and a forward sensor facing off the map saw nothing at all
-  (empty scans). It hides under the road and verges it meets and keeps clear of lower pavement.
 """
 
 from __future__ import annotations
@@ -45,9 +41,6 @@ from lidar2xodr.simulation.route import PAVED, lane_side
 CELL_M = 50.0
 STEP_M = 1.0
 PAINT_LIFT_M = 0.005
-APRON_M = 150.0
-APRON_CELL_M = 5.0
-APRON_CLEAR_M = 9.0  # beyond a paved lane's half width: the 8 m verge and a margin
 
 _GRAVEL_TYPES = frozenset({"border"})
 _GRASS_TYPES = frozenset({"none", "median"})
@@ -182,7 +175,6 @@ def build_world(odr: OpenDriveMap, roads: list[str], seed: int, roadside: bool =
             _structures(soup, road, clear, rng)
         if roadside and road.junction == "-1" and road.length > 100.0:
             add_roadside(soup, road, clear, np.random.default_rng([seed, zlib.crc32(rid.encode()), 1]))
-    _dead_end_aprons(soup, odr, roads)
     if not soup.tri:
         tri = np.zeros((0, 3, 3))
         return StaticWorld(np.zeros(3), tri.astype(np.float32), np.zeros(0, np.uint8), np.zeros(0, np.float32),
@@ -204,65 +196,6 @@ def build_world(odr: OpenDriveMap, roads: list[str], seed: int, roadside: bool =
         cell_start=np.concatenate([[0], np.cumsum(counts)]),
         cell_centre=(cells + 0.5) * CELL_M,
     )
-
-
-def _dead_end_aprons(soup: _Soup, odr: OpenDriveMap, roads: list[str]) -> None:
-    """Grass ground around the ends of the built network (module docstring).
-
-    The ground lies 0.7 m below the road end, so under the road and its verges it is hidden; it
-    stays `APRON_CLEAR_M` away only from pavement lower than itself, which it would cover.
-    """
-    pts, half = [], []
-    for rid in roads:
-        road = odr.roads[rid]
-        for ls in road.lane_sections:
-            s = _stations(ls.s, ls.s_end, 2.0)
-            for lid, lane in ls.lanes.items():
-                if lid == 0 or lane.type not in PAVED:
-                    continue
-                side = 1 if lid > 0 else -1
-                t_in, t_out = road.border_t(s, lid - side), road.border_t(s, lid)
-                pts.append(road.to_world(s, 0.5 * (t_in + t_out)))
-                half.append(0.5 * np.abs(t_out - t_in))
-    if not pts:
-        return
-    paved, half_w = np.concatenate(pts), np.concatenate(half)
-    tree = cKDTree(paved[:, :2])
-    reach = float(half_w.max()) + APRON_CLEAR_M
-
-    def clear_of_roads(xy: np.ndarray, z: float, below_margin: float) -> np.ndarray:
-        """Cells that cover no pavement: clear of pavement lower than z + 0.5 m by `APRON_CLEAR_M`."""
-        d, i = tree.query(xy, k=8, distance_upper_bound=reach)
-        ok = np.isfinite(d)
-        i = np.where(ok, i, 0)
-        margin = np.where(paved[i, 2] < z + 0.5, APRON_CLEAR_M, below_margin)
-        return ~(ok & (d < half_w[i] + margin)).any(axis=1)
-
-    n = int(APRON_M / APRON_CELL_M)
-    g = np.arange(-n, n + 1)
-    offsets = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
-    offsets = offsets[np.hypot(offsets[:, 0], offsets[:, 1]) * APRON_CELL_M <= APRON_M]
-    corners = 0.5 * APRON_CELL_M * np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]])
-    used: set[tuple[int, int]] = set()
-    for rid in roads:
-        road = odr.roads[rid]
-        for s_end, out in ((0.0, -1.0), (road.length, 1.0)):
-            x, y, hdg = (float(a[0]) for a in road.reference(np.array([s_end]), left=s_end > 0))
-            z = float(road.elevation(np.array([s_end]), left=s_end > 0)[0]) - 0.7
-            beyond = np.array([[x + out * 5.0 * math.cos(hdg), y + out * 5.0 * math.sin(hdg)]])
-            if not clear_of_roads(beyond, -np.inf, 0.5)[0]:
-                continue
-            keys = np.floor(np.array([x, y]) / APRON_CELL_M).astype(np.int64) + offsets
-            cells = (keys + 0.5) * APRON_CELL_M
-            fresh = np.array([(int(k[0]), int(k[1])) not in used for k in keys], dtype=bool)
-            fresh &= clear_of_roads(cells, z, 0.5)
-            used.update((int(k[0]), int(k[1])) for k in keys[fresh])
-            cells = cells[fresh]
-            if len(cells) == 0:
-                continue
-            quad = np.concatenate([cells[:, None, :] + corners[None], np.full((len(cells), 4, 1), z)], axis=2)
-            tri = np.stack([quad[:, [0, 1, 2]], quad[:, [0, 2, 3]]], axis=1)
-            soup.add(tri, R.GRASS, 0.32)
 
 
 def _stations(s0: float, s1: float, step: float = STEP_M) -> np.ndarray:
