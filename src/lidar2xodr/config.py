@@ -90,7 +90,8 @@ class ExtractionConfig(_Section):
                                   "holds points of at most moving_max_scans scans; static paint is re-observed "
                                   "as the sensor approaches it (simple_highway: 2 % of paint, 90 % of the trail)")
     moving_max_scans: int = Field(2, ge=1, description="ours: ... at most this many scans")
-    moving_link_m: float = Field(1.0, description="ours: transient points this close (xy) form one trail seed")
+    moving_link_m: float = Field(1.0, description="ours: transient points this close (xy), and within "
+                                 "moving_pair_s, are one blob (one object's view)")
     moving_min_scans: int = Field(3, ge=2, description="ours: a trail seed spans at least this many scans")
     moving_min_speed_mps: float = Field(3.0, description="ours: a trail seed moves at least this fast (world frame)")
     moving_min_travel_m: float = Field(3.0, description="ours: ... and at least this far over its time span")
@@ -105,7 +106,24 @@ class ExtractionConfig(_Section):
     moving_half_width_m: float = Field(1.5, description="ours: ... and within this distance across it (half a "
                                        "vehicle width plus margin; a lane line beside a lane-centred car is 1.75 m "
                                        "away)")
+    moving_max_speed_mps: float = Field(70.0, description="ours: fastest object followed from one scan's view "
+                                        "of it to the next (world frame)")
+    moving_pair_s: float = Field(0.25, description="ours: an object that jumps between scans (a spinning sensor "
+                                 "hits it in a few ms) is followed from one view to the next this far apart in time "
+                                 "(one missed scan at 10 Hz)")
+    moving_min_width_m: float = Field(0.1, description="ours: a trail narrower than this (RMS across its motion) "
+                                      "is a painted line swept by a moving observation edge, not an object: it "
+                                      "stays (a line 0.1-0.3 m wide: 0.03-0.09 m; a licence plate 0.15 m)")
+    moving_paint_radius_m: float = Field(0.5, description="ours: a trail point with points of "
+                                         "moving_paint_min_scans other scans this close lies on paint ...")
+    moving_paint_min_scans: int = Field(2, ge=1, description="ours: ... (a following car crossing the same spot "
+                                        "adds one scan)")
+    moving_on_paint_share: float = Field(0.5, description="ours: ... and a trail with this share of such points "
+                                         "is paint swept by a moving observation edge (one ring of a spinning "
+                                         "sensor along a line), not an object: it stays")
     moving_max_gap_s: float = Field(0.5, description="ours: a trail ends when no point joins it for this long")
+    moving_step_s: float = Field(0.05, description="ours: a trail grows by the points it predicts within this "
+                                 "time of the next such point, then refits (half a scan period at 10 Hz)")
     moving_fit_window_s: float = Field(1.0, description="ours: the trail's velocity is refitted on its points "
                                        "within this time of its newest (oldest) end while it grows")
 
