@@ -18,11 +18,12 @@ Rules (parameters in `LanesConfig`):
 - Roads: the measured road before the junction (A) and after it (B: the same reference line, so B
   continues A exactly, without the lane that leaves or joins) plus the branch (C). C is built by the
   lanes stage from the marking points beside the lost lane's side beyond the junction (before it, for
-  a merge) that lie farther than `assign_distance_m` from every line kept in B, plus, so C starts at
+  a merge, up to 30 m past it, where the ramp's lines may still converge) that lie farther than
+  `assign_distance_m` from every line kept in B (A, for a merge), plus, so C starts at
   the gore, for a diverge every point from 0.5 m inside the lost lane's inner line outwards within
   30 m of the junction, for a merge only the lost lane's own two lines over 15 m after the junction
   (a ramp that converges at an angle must not share its axis with the road's edge before it); of
-  these only points near a marking line (candidate) of at least `branch_min_line_m` are used
+  these only points of marking lines (candidates) spanning `branch_min_line_m` or more are used
   (clutter at a U-turn would bend C's axis). C is kept when it has lanes over
   `branch_min_length_m`, its junction end lies within two lane widths of the lost lane's middle and its
   heading there is within 30 deg of the road's; it is oriented to travel like the road (a diverging
@@ -226,8 +227,15 @@ def _branch_cloud(cloud: MarkingCloud, main: LaneModel, ev: Event, kept_lines: l
     sign = 1.0 if ev.side == "left" else -1.0
     gore = int(round(_GORE_M / max(float(main.s[1] - main.s[0]), 1e-6)))
     diverge = ev.kind == "diverge"
-    ahead = k >= ev.k if diverge else k <= ev.k
     t_in = by_id[inner].t[ev.k]
+    ref, normal = _frame(main)
+    fork = ref[ev.k] + normal[ev.k] * t_in
+    # beyond the junction's cross-section (before it, for a merge): a ramp far from the road has no
+    # meaningful nearest station
+    h = _heading(main, ev.k)
+    along = (xy - fork) @ np.array([np.cos(h), np.sin(h)])
+    # a merging ramp's lines go on converging past the junction, where its lane is the road's already
+    ahead = along >= 0.0 if diverge else along <= 2.0 * _GORE_M
     beside = sign * (t - t_in) > cfg.assign_distance_m
     far = _far_from(xy, kept_lines, cfg.assign_distance_m * 2)
     if diverge:
@@ -242,28 +250,32 @@ def _branch_cloud(cloud: MarkingCloud, main: LaneModel, ev: Event, kept_lines: l
                 np.abs(t - by_id[outer].t[k]) <= cfg.assign_distance_m)
         gore_pts = (k >= ev.k) & (k <= ev.k + gore) & on_lane
     take = (ahead & beside & far) | gore_pts
-    ref, normal = _frame(main)
-    fork = ref[ev.k] + normal[ev.k] * t_in
     take &= np.linalg.norm(xy - fork, axis=1) <= cfg.branch_window_m
     return _chained(_subset(cloud, np.flatnonzero(take)), cfg, markings_cfg)
 
 
 def _chained(cloud: MarkingCloud, cfg: LanesConfig, markings_cfg: MarkingsConfig) -> MarkingCloud:
-    """The points within `assign_distance_m` of a marking line (candidate) of `branch_min_line_m` or more."""
+    """The points of marking lines (candidates) whose points span `branch_min_line_m` or more."""
     from lidar2xodr.lanes import _label_by_candidates
     from lidar2xodr.markings import find_candidates
 
     if len(cloud.xyz) == 0:
         return cloud
-    lines = []
-    for c in find_candidates(cloud.xyz, markings_cfg):
-        ctr = np.asarray(c.centers)[:, :2]
-        if len(ctr) > 1 and float(np.sum(np.linalg.norm(np.diff(ctr, axis=0), axis=1))) >= cfg.branch_min_line_m:
-            lines.append(c)
-    if not lines:
+    cands = find_candidates(cloud.xyz, markings_cfg)
+    if not cands:
         return _subset(cloud, np.zeros(0, dtype=np.int64))
-    label = _label_by_candidates(np.asarray(cloud.xyz)[:, :2], lines, np.zeros(len(lines), dtype=np.int64), cfg)
-    return _subset(cloud, np.flatnonzero(label >= 0))
+    xy = np.asarray(cloud.xyz)[:, :2]
+    label = _label_by_candidates(xy, cands, np.arange(len(cands)), cfg)
+    keep = np.zeros(len(xy), dtype=bool)
+    for i, c in enumerate(cands):
+        mine = label == i
+        if not mine.any():
+            continue
+        d = np.asarray(c.directions, dtype=np.float64).mean(axis=0)
+        along = xy[mine] @ (d / max(float(np.linalg.norm(d)), 1e-9))
+        if float(along.max() - along.min()) >= cfg.branch_min_line_m:
+            keep |= mine
+    return _subset(cloud, np.flatnonzero(keep))
 
 
 def _orient_and_cut(branch: LaneModel, main: LaneModel, ev: Event, cfg: LanesConfig) -> tuple[LaneModel | None, str]:
@@ -411,28 +423,36 @@ def build_network(cloud: MarkingCloud, main: LaneModel, lanes_cfg: LanesConfig, 
     lost = sec.boundary_ids[ev.lane + 1] if ev.side == "right" else sec.boundary_ids[ev.lane]
     last = len(main.s) - 1
     diverge = ev.kind == "diverge"
-    if diverge:
-        road_a = slice_model(main, 0, ev.k)
-        road_b = slice_model(main, ev.k, last, drop={lost})
-        kept = road_b
-    else:
-        road_a = slice_model(main, 0, ev.k, drop={lost})
-        road_b = slice_model(main, ev.k, last)
-        kept = road_a
+    xy = np.asarray(cloud.xyz)[:, :2]
+
+    def attempt(ev: Event) -> tuple[LaneModel, LaneModel, LaneModel | None, LaneModel | None, str]:
+        if diverge:
+            road_a, road_b = slice_model(main, 0, ev.k), slice_model(main, ev.k, last, drop={lost})
+        else:
+            road_a, road_b = slice_model(main, 0, ev.k, drop={lost}), slice_model(main, ev.k, last)
+        sub = _branch_cloud(cloud, main, ev, _normal_lines(road_b if diverge else road_a, lanes_cfg), lanes_cfg,
+                            markings_cfg)
+        if len(sub.xyz) < 50:
+            return road_a, road_b, None, None, "too few markings beside the road there"
+        try:
+            raw = lanes_of(sub, "branch")
+        except InputError as exc:
+            return road_a, road_b, None, None, exc.problem
+        branch, why = _orient_and_cut(raw, main, ev, lanes_cfg)
+        return road_a, road_b, raw, branch, why
+
+    road_a, road_b, raw, branch, why = attempt(ev)
+    if branch is None and raw is not None and not diverge:
+        # the joining lane's outer line was carried back along the converging ramp: the junction is
+        # where the ramp's lane meets the road's
+        k_meet = _meeting_station(raw, main, ev)
+        if k_meet is not None and k_meet > ev.k:
+            road_a2, road_b2, raw2, branch2, why2 = attempt(replace(ev, k=k_meet))
+            if branch2 is not None:
+                ev, road_a, road_b, branch, why = replace(ev, k=k_meet), road_a2, road_b2, branch2, why2
     if len(road_a.s) < 5 or len(road_b.s) < 5 or not road_a.sections or not road_b.sections:
         return RoadNetwork([main], [], warnings)
     label = f"the lane {'leaving' if diverge else 'joining'} on the {ev.side} at s {main.s[ev.k]:.0f} m"
-    branch: LaneModel | None = None
-    why = ""
-    xy = np.asarray(cloud.xyz)[:, :2]
-    sub = _branch_cloud(cloud, main, ev, _normal_lines(kept, lanes_cfg), lanes_cfg, markings_cfg)
-    if len(sub.xyz) < 50:
-        why = "too few markings beside the road there"
-    else:
-        try:
-            branch, why = _orient_and_cut(lanes_of(sub, "branch"), main, ev, lanes_cfg)
-        except InputError as exc:
-            why = exc.problem
     rest = road_b if diverge else road_a
     messy = [e for e in find_events(rest, lanes_cfg) if (e.k < 50 if diverge else e.k > len(rest.s) - 50)]
     if branch is not None and messy:
@@ -472,6 +492,28 @@ def build_network(cloud: MarkingCloud, main: LaneModel, lanes_cfg: LanesConfig, 
     warnings.append(f"{label}: a {'branch' if diverge else 'ramp'} of {n_lanes} lane(s), {branch.s[-1]:.0f} m, "
                     "joined by a junction")
     return RoadNetwork(roads, links, warnings + _further(road_b if diverge else road_a, lanes_cfg))
+
+
+def _meeting_station(branch: LaneModel, main: LaneModel, ev: Event) -> int | None:
+    """The station from the junction on (up to 3 gore lengths, within the lane's section) where the
+    branch's reference line comes nearest the lost lane's middle, if within half a lane width."""
+    sec = main.sections[ev.section]
+    by_id = {b.id: b for b in main.boundaries}
+    ks = _stations_of(main, sec)
+    gore = int(round(_GORE_M / max(float(main.s[1] - main.s[0]), 1e-6)))
+    ks = ks[(ks >= ev.k) & (ks <= ev.k + 3 * gore)]
+    if not len(ks):
+        return None
+    left, right = by_id[sec.boundary_ids[ev.lane]].t[ks], by_id[sec.boundary_ids[ev.lane + 1]].t[ks]
+    ref, normal = _frame(main)
+    middle = ref[ks] + normal[ks] * (0.5 * (left + right))[:, None]
+    ok = np.isfinite(middle).all(axis=1)
+    if not ok.any():
+        return None
+    d, _ = cKDTree(np.asarray(branch.reference)[:, :2]).query(np.where(ok[:, None], middle, 0.0))
+    d = np.where(ok, d, np.inf)
+    best = int(np.argmin(d))
+    return int(ks[best]) if d[best] <= 0.5 * abs(float(left[best] - right[best])) else None
 
 
 def _further(rest: LaneModel, cfg: LanesConfig) -> list[str]:

@@ -598,6 +598,10 @@ def _first_frame(segs: Segments, lookups: Lookups, cfg: LanesConfig) -> Frame:
     normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
     mid = origin.copy()
     mid[:, :2] += normal * (0.5 * (lo + hi))[:, None]
+    seen = np.bincount(lookups.seg_a, minlength=n_seg) > 0
+    if seen.sum() >= 10:
+        # a segment no normal links to any line (a chain across lines, clutter where the ego turned) is no road
+        mid = mid[seen]
     u = _order_along(mid * np.array([1.0, 1.0, 3.0]))
     bins = np.floor(u / 10.0).astype(np.int64)
     uniq, inv = np.unique(bins, return_inverse=True)
@@ -637,8 +641,12 @@ def _lane_structure(
     step: float,
     w_lane: float,
     cfg: LanesConfig,
+    seen: _Observed | None = None,
 ) -> _Structure:
     """Which boundaries form the carriageway at each station, with tapers followed to zero width.
+
+    `seen` (where marking points were measured, see `_Observed`) keeps lines from being carried
+    towards the drive's ends where they were seen to be absent.
 
     Two rounds: the extensions found in the first (tapers, lines carried to the drive's ends) are
     measured lines in the second, which decides presence again from scratch, so a line dropped
@@ -655,7 +663,7 @@ def _lane_structure(
             on = _choose_carriageway(t, on, t_ego, solid, support, cfg)
             on, _ = _check_adjacency(t, on, rank, step, cfg)
             on = _clean_runs(on, min_run)
-        t_ext, on = _follow_tapers(t, on, step, w_lane, cfg)
+        t_ext, on = _follow_tapers(t, on, step, w_lane, cfg, seen, solid)
         t = np.where(on, t_ext, t)
     return _Structure(on, np.where(on, t, np.nan))
 
@@ -809,7 +817,8 @@ def _clean_runs(on: np.ndarray, min_run: int) -> np.ndarray:
 
 
 def _follow_tapers(
-    t: np.ndarray, on: np.ndarray, step: float, w_lane: float, cfg: LanesConfig
+    t: np.ndarray, on: np.ndarray, step: float, w_lane: float, cfg: LanesConfig, seen: _Observed | None = None,
+    solid: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Extend boundaries that appear or end back (forward) to where their new lane has zero width."""
     t = t.copy()
@@ -830,21 +839,25 @@ def _follow_tapers(
                     if not _extend(t, on, b, start, inward, probe, reach, w_lane):
                         end = road[0] if inward == 1 else road[-1]
                         if abs(start - end) <= reach:
-                            _hold_to(t, on, b, start, end)
+                            _hold_to(t, on, b, start, end, seen if solid is not None and solid[b] else None)
         if on.sum() == before:
             break
     return t, on
 
 
-def _hold_to(t: np.ndarray, on: np.ndarray, b: int, start: int, end: int) -> None:
+def _hold_to(
+    t: np.ndarray, on: np.ndarray, b: int, start: int, end: int, seen: _Observed | None = None
+) -> None:
     """Carry boundary b from `start` to the road's end `end` at a constant offset from a neighbour.
 
     The neighbour is the nearest of those that reach furthest towards the end. Lines start late or
     end early near the ends of a drive because they were not yet (or no longer) observed, not
     because the lane count changes. A line that ends on another one (within 1 m: a lane that
-    closed) is not carried. The outermost line (none kept beyond it on that side) is carried only
-    up to the first station where a marking line (any fitted line, its own off-road part included)
-    was measured more than 1 m beyond it: the sensor saw that far there, so the line was absent,
+    closed) is not carried. The outermost line (none kept beyond it on that side), when it is solid
+    (`seen` given), is carried only up to the first station where marking points were measured more
+    than 1 m beyond it but none where it would run (those would be the line itself, only not fitted
+    there): the sensor saw that far there, and a solid line would have been seen (a broken line's
+    far dashes are missed where a solid line beyond is still seen), so the line was absent,
     not unobserved (a lane that appears at full width near the start of a short drive, a ramp
     joining). Inner lines are carried as before: a broken line's last dash may end a gap early.
     """
@@ -856,12 +869,10 @@ def _hold_to(t: np.ndarray, on: np.ndarray, b: int, start: int, end: int) -> Non
     offset = t[b, start] - t[nb, start]
     if min(abs(t[j, start] - t[b, start]) for j in others) < 1.0:
         return
-    if not any(np.sign(offset) * (t[j, start] - t[b, start]) > 0 for j in others):
+    if seen is not None and not any(np.sign(offset) * (t[j, start] - t[b, start]) > 0 for j in others):
         carried = t[nb, span] + offset
-        measured = np.where(on[:, span] | (np.arange(len(t)) != b)[:, None], t[:, span], np.nan)
-        with np.errstate(invalid="ignore"):
-            seen = np.flatnonzero(np.any(np.sign(offset) * (measured - carried[None, :]) > 1.0, axis=0))
-        span = span[: seen[0] if len(seen) else len(span)]
+        stop = np.flatnonzero(seen.beyond(span, carried, float(np.sign(offset))) & ~seen.near(span, carried))
+        span = span[: stop[0] if len(stop) else len(span)]
     span = span[on[nb, span] & ~on[b, span]]
     t[b, span] = t[nb, span] + offset
     on[b, span] = True
@@ -1123,6 +1134,7 @@ def build_lane_model(
             label = np.where(label >= 0, root[np.maximum(label, 0)], -1)
             superline = root[superline]
             fit = _fit_boundaries(k_pt, t_pt, label, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)))
+        crossing = _crossing_points(fit.t, label, k_pt, t_pt, cfg.assign_distance_m)
         short = np.isfinite(fit.t).sum(axis=1) * step < cfg.min_section_length_m
         n_short = int(np.sum(short & np.isfinite(fit.t).any(axis=1)))
         fit.t[short] = np.nan
@@ -1131,7 +1143,8 @@ def build_lane_model(
         solid = np.array(
             [_mark_pattern(s_pt[(label == b) & inside], cfg)[0] == "solid" for b in active], dtype=bool
         )
-        sub = _lane_structure(fit.t[active], fit.support[active], solid, t_ego, step, w_lane, cfg)
+        seen = _observed(k_pt[inside], t_pt[inside], ~crossing[inside], len(frame.s))
+        sub = _lane_structure(fit.t[active], fit.support[active], solid, t_ego, step, w_lane, cfg, seen)
         structure = _Structure(np.zeros(fit.t.shape, dtype=bool), np.full(fit.t.shape, np.nan))
         structure.on[active], structure.t[active] = sub.on, sub.t
         if not np.any(structure.on.sum(axis=0) >= 2):
@@ -1216,17 +1229,18 @@ def _continuations(t: np.ndarray, gap_max: int, tol: float, probe: int) -> np.nd
 
     Marking chains break where every line is hard to follow at once (a tight curve, an occlusion by
     a truck): the paper's global lookup then finds no neighbour beside both pieces and the boundary
-    would jump between two fits. b continues a when b starts at most `gap_max` stations after a ends
-    (or overlaps it by at most `probe` stations, agreeing within `tol` there) and both reach the
-    same offset within `tol` at the middle of the gap: kept at their offset to a line that is
-    present across the whole gap (the nearest such neighbour), else each extrapolated linearly from
-    its last (first) `probe` stations; both run along the road there (`_ALONG_SLOPE`: a ramp or a
-    crossing line is no continuation in this frame). Pairs are taken best first, one successor and one
-    predecessor per line; chains follow.
+    would jump between two fits. Only lines fitted over more than `probe` stations take part (dots,
+    posts and single dashes are the global lookup's business). b continues a when b starts at most
+    `gap_max` stations after a ends (or overlaps it by at most `probe` stations, agreeing within
+    `tol` there) and both reach the same offset within `tol` at the middle of the gap: kept at their
+    offset to a line that is present across the whole gap (the nearest such neighbour), else each
+    extrapolated linearly from its last (first) `probe` stations; both run along the road there
+    (`_ALONG_SLOPE`: a ramp or a crossing line is no continuation in this frame). Pairs are taken
+    best first, one successor and one predecessor per line; chains follow.
     """
     n = len(t)
     fin = np.isfinite(t)
-    rows = [b for b in range(n) if fin[b].sum() >= 2]
+    rows = [b for b in range(n) if fin[b].sum() > probe]
     span = {b: (int(np.flatnonzero(fin[b])[0]), int(np.flatnonzero(fin[b])[-1])) for b in rows}
     pairs = []
     for a in rows:
@@ -1306,6 +1320,70 @@ def _bridge_gaps(t: np.ndarray, observed: np.ndarray, gap: int) -> None:
             w0, w1 = t[b, g0 - 1] - t[best, g0 - 1], t[b, g1] - t[best, g1]
             f = (np.arange(g0, g1) - (g0 - 1)) / (g1 - g0 + 1)
             t[b, g0:g1] = t[best, g0:g1] + w0 + (w1 - w0) * f
+
+
+@dataclass
+class _Observed:
+    """Marking points counted per block of stations and lateral bin: where the sensor saw paint
+    (a bin counts with `least` points or more, so one stray return does not)."""
+
+    counts: np.ndarray  # (blocks, bins) every point
+    free: np.ndarray  # (blocks, bins) points not on a line that crosses the road there
+    t0: float
+    bin_m: float
+    block: int
+
+    def near(self, k: np.ndarray, t: np.ndarray, least: int = 3) -> np.ndarray:
+        """At stations k: paint was seen within about `bin_m` of offset t (False where t is NaN): a
+        line there, only not fitted; paint of a line crossing the road there is no such evidence."""
+        blocks = np.minimum(k // self.block, len(self.counts) - 1)
+        ok = np.isfinite(t)
+        col = np.floor((np.where(ok, t, self.t0) - self.t0) / self.bin_m).astype(np.int64)
+        n_bins = self.counts.shape[1]
+        out = np.zeros(len(k), dtype=bool)
+        for d in (-1, 0, 1):
+            out |= self.free[blocks, np.clip(col + d, 0, n_bins - 1)] >= least
+        return out & ok
+
+    def beyond(self, k: np.ndarray, t: np.ndarray, side: float, least: int = 3) -> np.ndarray:
+        """At stations k: paint was seen more than 1 m beyond offset t (`side`: +1 left, -1 right)."""
+        blocks = np.minimum(k // self.block, len(self.counts) - 1)
+        ok = np.isfinite(t)
+        col = np.floor((np.where(ok, t, self.t0) - self.t0) / self.bin_m).astype(np.int64)
+        n_bins = self.counts.shape[1]
+        edge = col + int(side * np.ceil(1.0 / self.bin_m))
+        cum = np.cumsum(self.counts >= least, axis=1)
+        if side > 0:
+            out = cum[blocks, -1] - cum[blocks, np.clip(edge, 0, n_bins - 1)] > 0
+        else:
+            out = (cum[blocks, np.clip(edge - 1, 0, n_bins - 1)] > 0) & (edge > 0)
+        return out & ok
+
+
+def _crossing_points(t_fit: np.ndarray, label: np.ndarray, k: np.ndarray, t: np.ndarray, tol: float) -> np.ndarray:
+    """Points on a fitted line that runs across the road there (offset changing by more than
+    `_ALONG_SLOPE` per station: a ramp, a crossing line), not along it."""
+    slope = np.abs(np.gradient(t_fit, axis=1)) if t_fit.shape[1] > 1 else np.zeros_like(t_fit)
+    row = np.maximum(label, 0)
+    with np.errstate(invalid="ignore"):
+        return (label >= 0) & (np.abs(t - t_fit[row, k]) <= tol) & (slope[row, k] > _ALONG_SLOPE)
+
+
+def _observed(k: np.ndarray, t: np.ndarray, free: np.ndarray, m: int, block: int = 10,
+              bin_m: float = 0.5) -> _Observed:
+    """Counts of marking points (all, and those with `free` set) per `block` stations and `bin_m` of offset."""
+    n_blocks = max((m + block - 1) // block, 1)
+    if len(k) == 0:
+        empty = np.zeros((n_blocks, 1), dtype=np.int64)
+        return _Observed(empty, empty.copy(), 0.0, bin_m, block)
+    t0 = float(np.floor(t.min()))
+    n_bins = int(np.ceil((t.max() - t0) / bin_m)) + 1
+    cell = (np.minimum(k // block, n_blocks - 1), ((t - t0) / bin_m).astype(np.int64))
+    counts = np.zeros((n_blocks, n_bins), dtype=np.int64)
+    np.add.at(counts, cell, 1)
+    loose = np.zeros((n_blocks, n_bins), dtype=np.int64)
+    np.add.at(loose, (cell[0][free], cell[1][free]), 1)
+    return _Observed(counts, loose, t0, bin_m, block)
 
 
 def _ego_offsets(frame: Frame, ego: np.ndarray | None) -> np.ndarray | None:
