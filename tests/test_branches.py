@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 
 from lidar2xodr.branches import (
+    _chained,
+    _meeting_station,
     build_network,
     find_events,
     flip_model,
@@ -15,7 +17,16 @@ from lidar2xodr.branches import (
     slice_model,
 )
 from lidar2xodr.config import Config
-from lidar2xodr.data import Boundary, LaneModel, LaneSection, RoadLink, RoadNetwork
+from lidar2xodr.data import (
+    Boundary,
+    GroundPlanes,
+    LaneModel,
+    LaneSection,
+    MarkingCloud,
+    RoadLink,
+    RoadNetwork,
+    Trajectory,
+)
 from lidar2xodr.errors import InputError
 
 
@@ -88,3 +99,41 @@ def test_no_event_leaves_the_road_whole() -> None:
     road = _road()
     net = build_network(None, road, cfg.lanes, cfg.markings)  # type: ignore[arg-type]
     assert net.roads == [road] and net.links == []
+
+
+def _cloud(xy: np.ndarray) -> MarkingCloud:
+    n = len(xy)
+    planes = GroundPlanes(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)))
+    return MarkingCloud(np.column_stack([xy, np.zeros(n)]), np.ones(n, dtype=np.float32), np.zeros(n, dtype=np.int32),
+                        np.zeros(n), planes, Trajectory(np.zeros(0), np.zeros((0, 4, 4))))
+
+
+def test_branch_points_keep_marking_lines_and_drop_short_clutter() -> None:
+    """Only paint of marking lines spanning branch_min_line_m or more measures a branch: a 40 m
+    solid line stays, a 2 m blob (clutter where the ego turned) goes."""
+    rng = np.random.default_rng(3)
+    line = np.column_stack([rng.uniform(0.0, 40.0, 3000), rng.normal(0.0, 0.05, 3000)])
+    blob = rng.normal([20.0, 15.0], 0.5, (200, 2))
+    cfg = Config()
+    kept = _chained(_cloud(np.vstack([line, blob])), cfg.lanes, cfg.markings)
+    assert len(kept.xyz) >= 0.95 * len(line)
+    assert np.all(np.abs(kept.xyz[:, 1]) < 1.0), "the blob is gone"
+
+
+def test_a_merging_ramp_meets_its_lane_where_its_axis_reaches_the_lane_middle() -> None:
+    """The joining lane (right, between -1.75 and -5.25) was carried back to s 150; the ramp's axis,
+    coming in at an angle, reaches the lane's middle (-3.5) only at s 180."""
+    road = _road()
+    s = road.s
+    right = np.where(s >= 150.0, -5.25, np.nan)
+    road.boundaries = [Boundary(0, np.full_like(s, 1.75)), Boundary(1, np.full_like(s, -1.75), "broken"),
+                       Boundary(2, right)]
+    road.sections = [LaneSection(0.0, 150.0, [0, 1]), LaneSection(150.0, 300.0, [0, 1, 2])]
+    x = np.arange(100.0, 181.0)
+    ramp = LaneModel(s=x - 100.0, reference=np.column_stack([x, -3.5 - 0.3 * (180.0 - x), 0 * x]),
+                     boundaries=[], sections=[])
+    ev = find_events(road, Config().lanes)[0]
+    assert (ev.kind, ev.k) == ("merge", 150)
+    assert abs(_meeting_station(ramp, road, ev) - 180) <= 1
+    far = LaneModel(s=ramp.s, reference=ramp.reference + [0.0, -8.0, 0.0], boundaries=[], sections=[])
+    assert _meeting_station(far, road, ev) is None, "an axis that never comes within half a lane"

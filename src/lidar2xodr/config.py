@@ -206,8 +206,8 @@ class LanesConfig(_Section):
     branch_window_m: float = Field(120.0, description="ours: a branch is measured from the markings within this "
                                    "distance of its junction (a sensor beside it sees no farther; clutter beyond "
                                    "would bend its road axis)")
-    branch_min_line_m: float = Field(10.0, description="ours: a branch is measured only from marking points near a "
-                                     "marking line (candidate) at least this long; shorter paint (clutter at a U-turn, "
+    branch_min_line_m: float = Field(10.0, description="ours: a branch is measured only from the points of marking "
+                                     "lines (candidates) spanning at least this; shorter paint (clutter at a U-turn, "
                                      "arrows, blobs) would bend its road axis")
     branch_min_length_m: float = Field(30.0, description="ours: a leaving or joining lane becomes a road of its own "
                                        "when its markings give lanes over at least this length")

@@ -1504,9 +1504,9 @@ def _mark_dividers(model: LaneModel, ego: _EgoTrack | None, cfg: LanesConfig,
             continue
         right_side = t_e[beside] < t_b[beside]
         consistent = np.where(direction[beside] > 0, right_side, ~right_side)
-        covered = len(np.unique(k[beside])) * step
+        covered = _covered_m(k[beside], step)
         wrong = len(np.unique(k[beside][~consistent])) * step
-        both = [len(np.unique(k[beside][consistent & (direction[beside] == sign)])) * step for sign in (1, -1)]
+        both = [_covered_m(k[beside][consistent & (direction[beside] == sign)], step) for sign in (1, -1)]
         if (short or by_id[bid].mark_type != "solid") and min(both) < need:
             continue
         if wrong <= cfg.divider_max_wrong_side_m and covered >= need:
@@ -1519,6 +1519,16 @@ def _mark_dividers(model: LaneModel, ego: _EgoTrack | None, cfg: LanesConfig,
             found = solid
         sec.divider_id = min(found, key=lambda b: (closeness[b], b)) if found else None
     _drop_partial_opposite(model, along)
+
+
+def _covered_m(k: np.ndarray, step: float, max_gap_m: float = 5.0) -> float:
+    """Length of road the samples at stations k cover: the stations between neighbouring samples up
+    to `max_gap_m` apart count (poses a few metres apart cover the road between them)."""
+    u = np.unique(k)
+    if len(u) == 0:
+        return 0.0
+    cap = max(int(round(max_gap_m / step)), 1)
+    return float(np.sum(np.minimum(np.diff(u), cap)) + 1) * step
 
 
 def _drop_partial_opposite(model: LaneModel, along: dict[int, bool]) -> None:
