@@ -77,6 +77,7 @@ from lidar2xodr.fileio import write_text
 
 FORMAT = "lidar2xodr.lanes/1"
 _CHUNK = 20000
+_ABSENT_RUN = 20  # stations (m) a line must be seen to be absent before it is no longer carried
 _ALONG_SLOPE = 0.1  # lines joined across a gap run along the road there (within ~6 deg of the frame)
 _HOP_RADIUS_M = 500.0  # tightest curve a step beside another is allowed to follow (motorway minimum ~ 700 m)
 
@@ -854,12 +855,13 @@ def _hold_to(
     end early near the ends of a drive because they were not yet (or no longer) observed, not
     because the lane count changes. A line that ends on another one (within 1 m: a lane that
     closed) is not carried. The outermost line (none kept beyond it on that side), when it is solid
-    (`seen` given), is carried only up to the first station where marking points were measured more
-    than 1 m beyond it but none where it would run (those would be the line itself, only not fitted
-    there): the sensor saw that far there, and a solid line would have been seen (a broken line's
-    far dashes are missed where a solid line beyond is still seen), so the line was absent,
-    not unobserved (a lane that appears at full width near the start of a short drive, a ramp
-    joining). Inner lines are carried as before: a broken line's last dash may end a gap early.
+    (`seen` given), is not carried past the first stretch of `_ABSENT_RUN` stations where marking
+    points were measured more than 1 m beyond it but none where it would run (those would be the
+    line itself, only not fitted there; a shorter stretch can be a patch of clutter): the sensor
+    saw that far there, and a solid line would have been seen (a broken line's far dashes are
+    missed where a solid line beyond is still seen), so the line was absent, not unobserved (a
+    lane that appears at full width near the start of a short drive, a ramp joining). Inner lines
+    are carried as before: a broken line's last dash may end a gap early.
     """
     span = np.arange(start - 1, end - 1, -1) if end < start else np.arange(start + 1, end + 1)
     others = [j for j in range(len(t)) if j != b and on[j, start]]
@@ -871,8 +873,9 @@ def _hold_to(
         return
     if seen is not None and not any(np.sign(offset) * (t[j, start] - t[b, start]) > 0 for j in others):
         carried = t[nb, span] + offset
-        stop = np.flatnonzero(seen.beyond(span, carried, float(np.sign(offset))) & ~seen.near(span, carried))
-        span = span[: stop[0] if len(stop) else len(span)]
+        absent = seen.beyond(span, carried, float(np.sign(offset))) & ~seen.near(span, carried)
+        runs = [a for a, e in _runs(absent) if e - a >= _ABSENT_RUN]
+        span = span[: runs[0] if runs else len(span)]
     span = span[on[nb, span] & ~on[b, span]]
     t[b, span] = t[nb, span] + offset
     on[b, span] = True
