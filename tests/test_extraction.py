@@ -471,7 +471,8 @@ def test_transient_cells_and_time_quantum() -> None:
 def test_a_low_bright_object_driving_with_the_ego_leaves_no_points(tmp_path: Path) -> None:
     """End to end: a face 0.03-0.13 m high passes the road band and the paint test, every scan
     sees it (a spinning sweep: it jumps 1.7 m per scan). Without the filter it is a line of
-    marking points between the lane lines; with it, none is left and each line keeps every point."""
+    marking points between the lane lines; with it, none is left and each line keeps every point,
+    the same with a process pool."""
     folder = write_drive(make_drive(n_scans=20, mover=(20.0, 17.0), seed=4), tmp_path / "d")
     counts = {}
     for on in (False, True):
@@ -486,6 +487,9 @@ def test_a_low_bright_object_driving_with_the_ego_leaves_no_points(tmp_path: Pat
     assert lines_on == lines_off and min(lines_on) > 200
     assert rep_on.marking_points_raw == rep_off.marking_points_raw
     assert rep_on.marking_points == rep_off.marking_points - obj_off
+    one = extract_markings(open_dataset(folder), ExtractionConfig(workers=1))
+    pool = extract_markings(open_dataset(folder), ExtractionConfig(workers=2))
+    assert np.array_equal(one.xyz, pool.xyz) and np.array_equal(one.time, pool.time)
 
 
 # --- end to end on the synthetic drive --------------------------------------------------------
