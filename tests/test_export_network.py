@@ -19,9 +19,8 @@ import numpy as np
 import pytest
 from lxml import etree
 from scipy.integrate import cumulative_trapezoid
-from scipy.spatial import cKDTree
 
-from lidar2xodr.check import find_qc_venv, junction_gaps
+from lidar2xodr.check import find_qc_venv, junction_gaps, polyline_distance
 from lidar2xodr.config import ExportConfig
 from lidar2xodr.data import Boundary, GroundPlanes, LaneModel, LaneSection, RoadLink, RoadNetwork
 from lidar2xodr.errors import InputError
@@ -145,17 +144,6 @@ def _boundary_xy(model: LaneModel, bid: int) -> np.ndarray:
     return model.reference[:, :2] + model.boundaries[bid].t[:, None] * left
 
 
-def _dist_to_polyline(points: np.ndarray, poly: np.ndarray) -> np.ndarray:
-    """Distance of each point to the polyline (segments next to its nearest vertex)."""
-    _, i = cKDTree(poly).query(points)
-    best = np.full(len(points), np.inf)
-    for a, b in ((np.maximum(i - 1, 0), i), (i, np.minimum(i + 1, len(poly) - 1))):
-        seg = poly[b] - poly[a]
-        u = np.clip(np.sum((points - poly[a]) * seg, axis=1) / np.maximum(np.sum(seg * seg, axis=1), 1e-18), 0, 1)
-        best = np.minimum(best, np.linalg.norm(points - (poly[a] + u[:, None] * seg), axis=1))
-    return best
-
-
 def test_roads_junction_and_links_are_written(written) -> None:
     for name, incoming, outgoing in (("diverge", ["1"], ["2", "3"]), ("merge", ["1", "3"], ["2"])):
         _, _, path, summary = written[name]
@@ -227,7 +215,7 @@ def test_branch_is_snapped_onto_the_main_road(written, name: str) -> None:
         assert np.linalg.norm(at_junction - _boundary_xy(truth, bid)[end]) <= 0.01
         dist_junction = s if name == "diverge" else branch.length - s
         far = (dist_junction > ExportConfig().junction_blend_m + 5.0) & (dist_junction < branch.length - 5.0)
-        far_from_junction = max(far_from_junction, float(_dist_to_polyline(pts[far], _boundary_xy(model, bid)).max()))
+        far_from_junction = max(far_from_junction, float(polyline_distance(pts[far], _boundary_xy(model, bid)).max()))
     # hard end constraints alone would leave 1.5 cm there (and overshoot 10 cm nearer): the blend bends the model
     assert far_from_junction <= 0.006, f"beyond the blend the branch stays on its markings ({far_from_junction:.4f} m)"
 

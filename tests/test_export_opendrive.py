@@ -13,6 +13,7 @@ from pyxodr.road_objects.network import RoadNetwork
 from scipy.integrate import cumulative_trapezoid, quad
 from scipy.spatial import cKDTree
 
+from lidar2xodr.check import polyline_distance
 from lidar2xodr.config import ExportConfig
 from lidar2xodr.data import Boundary, GeoOrigin, GroundPlanes, LaneModel, LaneSection
 from lidar2xodr.errors import InputError
@@ -112,18 +113,6 @@ def _left_normals(model: LaneModel) -> np.ndarray:
     return np.stack([-tan[:, 1], tan[:, 0]], axis=1) / np.linalg.norm(tan, axis=1)[:, None]
 
 
-def _dist_to_polyline(points: np.ndarray, poly: np.ndarray) -> np.ndarray:
-    """Exact distance of each point to a densely sampled polyline (nearest vertex's two segments)."""
-    _, i = cKDTree(poly).query(points)
-    best = np.full(len(points), np.inf)
-    for a, b in ((np.maximum(i - 1, 0), i), (i, np.minimum(i + 1, len(poly) - 1))):
-        seg = poly[b] - poly[a]
-        ln = np.maximum(np.sum(seg * seg, axis=1), 1e-18)
-        u = np.clip(np.sum((points - poly[a]) * seg, axis=1) / ln, 0.0, 1.0)
-        best = np.minimum(best, np.linalg.norm(points - (poly[a] + u[:, None] * seg), axis=1))
-    return best
-
-
 def _boundary_points(model: LaneModel, section: LaneSection, bid: int, trim: float = 1.0) -> np.ndarray:
     t = next(b.t for b in model.boundaries if b.id == bid)
     m = (model.s >= section.s_start + trim) & (model.s <= section.s_end - trim) & np.isfinite(t)
@@ -158,11 +147,11 @@ def test_reference_line_reproduced_by_both_readers(written, name: str) -> None:
     road = next(iter(OpenDriveMap.load(path).roads.values()))
     s = np.linspace(0.0, road.length, int(road.length / 0.05) + 1)
     x, y, _ = road.reference(s)
-    dev = _dist_to_polyline(model.reference[:, :2], np.stack([x, y], axis=1))
+    dev = polyline_distance(model.reference[:, :2], np.stack([x, y], axis=1))
     assert dev.max() <= 0.02, f"project reader: reference off by {dev.max():.4f} m"
     assert summary.max_reference_dev_m <= 0.02
     ref = RoadNetwork(str(path), resolution=0.2).get_roads()[0].reference_line
-    dev_pyxodr = _dist_to_polyline(model.reference[:, :2], ref[:, :2])
+    dev_pyxodr = polyline_distance(model.reference[:, :2], ref[:, :2])
     assert dev_pyxodr.max() <= 0.02, f"pyxodr: reference off by {dev_pyxodr.max():.4f} m"
     assert abs(road.length - (model.s[-1] - model.s[0])) < 0.05
 
@@ -177,7 +166,7 @@ def test_lane_borders_reproduce_boundaries(written, name: str) -> None:
         centre = 0 if sec.divider_id is None else sec.boundary_ids.index(sec.divider_id)
         for i, bid in enumerate(sec.boundary_ids):
             pts = _boundary_points(model, sec, bid)
-            dev = _dist_to_polyline(pts, sampled.border_xyz[centre - i][:, :2])
+            dev = polyline_distance(pts, sampled.border_xyz[centre - i][:, :2])
             worst = max(worst, float(dev.max()))
     assert worst <= 0.03, f"lane border off by {worst:.4f} m"
     assert summary.max_border_dev_m <= 0.03
@@ -187,13 +176,13 @@ def test_lane_borders_in_pyxodr(written) -> None:
     model, path, _ = written["extra"]
     road = RoadNetwork(str(path), resolution=0.2).get_roads()[0]
     assert len(road.lane_sections) == 3
-    offset_dev = _dist_to_polyline(_boundary_points(model, model.sections[0], 0), road.lane_offset_line[:, :2])
+    offset_dev = polyline_distance(_boundary_points(model, model.sections[0], 0), road.lane_offset_line[:, :2])
     assert offset_dev.max() <= 0.03
     for sec, ls in zip(model.sections, road.lane_sections, strict=True):
         lanes = {lane.id: lane for lane in ls.right_lanes}
         assert sorted(lanes) == list(range(-(len(sec.boundary_ids) - 1), 0))
         for i, bid in enumerate(sec.boundary_ids[1:], start=1):
-            dev = _dist_to_polyline(_boundary_points(model, sec, bid, trim=2.0), lanes[-i].boundary_line[:, :2])
+            dev = polyline_distance(_boundary_points(model, sec, bid, trim=2.0), lanes[-i].boundary_line[:, :2])
             assert dev.max() <= 0.03, f"pyxodr: lane {-i} border off by {dev.max():.4f} m"
 
 

@@ -357,7 +357,7 @@ def run_netconvert(path: Path) -> dict[str, Any]:
     return out
 
 
-def _polyline_distance(points: np.ndarray, poly: np.ndarray) -> np.ndarray:
+def polyline_distance(points: np.ndarray, poly: np.ndarray) -> np.ndarray:
     """Distance of each point to a polyline (the segments beside its nearest vertex)."""
     from scipy.spatial import cKDTree
 
@@ -414,7 +414,7 @@ def run_pyxodr(path: Path, odr: Any | None = None) -> dict[str, Any]:
                 continue
             s = np.linspace(0.0, road.length, max(2, math.ceil(road.length / 0.05) + 1))
             x, y, _ = road.reference(s)
-            dev = max(dev, float(_polyline_distance(pts, np.column_stack([x, y])).max()))
+            dev = max(dev, float(polyline_distance(pts, np.column_stack([x, y])).max()))
         out["max_reference_dev_m"] = dev
     out["ok"] = not out["warnings"] and not out["errors"]
     return out
