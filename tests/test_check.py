@@ -89,11 +89,11 @@ def test_heading_kink_fails_and_tiny_one_passes(tmp_path: Path) -> None:
     res = check_file(kinked)
     assert res["continuity"]["max_kink_rad"] == pytest.approx(0.02, abs=1e-9)
     assert res["ok"] is False
-    fine = _map(tmp_path, _line(0, 0, 0, 0, 50) + _line(50, 50, 0.004, 0.005, 50), 100, "f.xodr")
+    fine = _map(tmp_path, _line(0, 0, 0, 0, 50) + _line(50, 50, 0.0004, 0.0005, 50), 100, "f.xodr")
     res = check_file(fine)
-    assert res["continuity"]["max_leap_m"] == pytest.approx(0.004, abs=1e-9)
-    assert res["continuity"]["max_kink_rad"] == pytest.approx(0.005, abs=1e-9)
-    assert 0.004 < LEAP_LIMIT_M and 0.005 < KINK_LIMIT_RAD
+    assert res["continuity"]["max_leap_m"] == pytest.approx(0.0004, abs=1e-9)
+    assert res["continuity"]["max_kink_rad"] == pytest.approx(0.0005, abs=1e-9)
+    assert 0.0004 < LEAP_LIMIT_M <= 0.001 and 0.0005 < KINK_LIMIT_RAD <= 0.001
     assert res["ok"] is True
 
 
