@@ -94,6 +94,7 @@ ROADS = {
     "extra": lambda: _make_road(2000.0, [(0, 1 / 3000), (2000, 1 / 3000)], extra=EXTRA),
     "twoway": _two_way_road,
 }
+UNFOLDED = ("extra", "twoway")
 
 
 @pytest.fixture(scope="module")
@@ -105,6 +106,11 @@ def written(tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple[LaneMod
         planes = _planes(model) if name == "clothoid5km" else None
         path = out / f"{name}.xodr"
         res[name] = (model, path, export_opendrive(model, planes, ExportConfig(), path))
+    for name in UNFOLDED:  # the lane sections exactly as the LaneModel has them (test_export_sections.py folds them)
+        model = ROADS[name]()
+        path = out / f"{name}_unfolded.xodr"
+        res[f"{name}_unfolded"] = (model, path, export_opendrive(model, None, ExportConfig(fold_appearing_lanes=False),
+                                                                 path))
     return res
 
 
@@ -156,7 +162,7 @@ def test_reference_line_reproduced_by_both_readers(written, name: str) -> None:
     assert abs(road.length - (model.s[-1] - model.s[0])) < 0.05
 
 
-@pytest.mark.parametrize("name", ["scurve", "clothoid5km", "extra", "twoway"])
+@pytest.mark.parametrize("name", ["scurve", "clothoid5km", "extra_unfolded", "twoway_unfolded"])
 def test_lane_borders_reproduce_boundaries(written, name: str) -> None:
     model, path, summary = written[name]
     sections = OpenDriveMap.load(path).sample(step=0.05)
@@ -173,7 +179,7 @@ def test_lane_borders_reproduce_boundaries(written, name: str) -> None:
 
 
 def test_lane_borders_in_pyxodr(written) -> None:
-    model, path, _ = written["extra"]
+    model, path, _ = written["extra_unfolded"]
     road = RoadNetwork(str(path), resolution=0.2).get_roads()[0]
     assert len(road.lane_sections) == 3
     offset_dev = polyline_distance(_boundary_points(model, model.sections[0], 0), road.lane_offset_line[:, :2])
@@ -226,7 +232,7 @@ def _width(lane: etree._Element, ds: float) -> float:
 
 
 def test_appearing_lane_starts_and_ends_at_zero_width_and_links_both_ways(written) -> None:
-    _, path, _ = written["extra"]
+    _, path, _ = written["extra_unfolded"]
     secs = _sections_xml(path)
     assert [len(s.findall("right/lane")) for s in secs] == [3, 4, 3]
     new = secs[1].find("right/lane[@id='-4']")
@@ -411,32 +417,34 @@ def test_asam_checker_and_independent_readers_accept_the_map(written) -> None:
 
 
 @pytest.mark.slow
-def test_sumo_warns_about_a_lane_appearing_on_a_two_way_road(written) -> None:
-    """The one reader warning the exporter keeps (see check.py): the standard forbids the link SUMO asks for.
+def test_sumo_reads_a_two_way_road_with_an_appearing_lane_once_folded(written) -> None:
+    """Why export_sections.py folds: with the appearing lane in a section of its own SUMO warns.
 
     SUMO 1.15 gives each lane at most one successor, so a lane that appears has no incoming connection;
     it warns when the node has more than one incoming edge, which on a two-way road it always has (the
     left lanes' edge). Linking the appearing lane to its neighbour would be an ASAM error
-    (road.lane.link.new_lane_appear). The map still loads, the lane is built and reachable by a lane change.
+    (road.lane.link.new_lane_appear). Folded into the section before at width 0, it loads cleanly.
     """
     from lidar2xodr.check import check_file
 
-    _, path, _ = written["twoway"]
-    verdict = check_file(path)
-    assert verdict["ok"] and verdict["asam"]["errors"] == 0, verdict["reasons"]
-    assert verdict["readers"]["pyxodr"]["ok"], verdict["readers"]["pyxodr"]
-    sumo = verdict["readers"]["netconvert"]
-    if not sumo["available"]:
-        pytest.skip(sumo["note"])
-    assert sumo["returncode"] == 0 and not sumo["errors"]
-    assert len(sumo["warnings"]) == 1, sumo["warnings"]
+    for name, n_warnings in (("twoway", 0), ("twoway_unfolded", 1)):
+        _, path, _ = written[name]
+        verdict = check_file(path)
+        assert verdict["ok"] and verdict["asam"]["errors"] == 0, verdict["reasons"]
+        assert verdict["asam"]["warnings"] == 0, verdict["asam"]["issues"][:5]
+        assert verdict["readers"]["pyxodr"]["ok"], verdict["readers"]["pyxodr"]
+        sumo = verdict["readers"]["netconvert"]
+        if not sumo["available"]:
+            pytest.skip(sumo["note"])
+        assert sumo["returncode"] == 0 and not sumo["errors"]
+        assert len(sumo["warnings"]) == n_warnings, (name, sumo["warnings"])
     assert re.fullmatch(r"Warning: Lane '-1#1_0' is not connected from any incoming edge at junction '1#1'\.",
                         sumo["warnings"][0]), sumo["warnings"]
 
 
 def test_two_way_road_has_left_lanes_on_the_divider(written) -> None:
     """Lane 0 on the divider: left lanes 1, 2 outwards, right lanes -1.. , links only on their own side."""
-    model, path, _ = written["twoway"]
+    model, path, _ = written["twoway_unfolded"]
     root = etree.parse(str(path)).getroot()
     assert root.find("road").get("rule") == "RHT"
     secs = _sections_xml(path)

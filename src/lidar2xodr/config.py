@@ -237,6 +237,9 @@ class ExportConfig(_Section):
     junction_type: Literal["default", "direct"] = Field(
         "default", description="ours: 'default' = classic junction with connecting roads (read by every reader, "
         "SUMO 1.15 included); 'direct' = OpenDRIVE 1.7+ direct junction (no connecting roads)")
+    fold_appearing_lanes: bool = Field(True, description="ours: an outer lane that opens from width 0 stays in the "
+                                       "section before at width 0 instead of starting a section (SUMO warns about "
+                                       "an appearing lane it cannot connect; see export_sections.py)")
     connecting_road_m: float = Field(20.0, description="ours: length of a connecting road cut from the road "
                                      "end at a classic junction (at most its end lane section and half the road)")
 

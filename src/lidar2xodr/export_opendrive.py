@@ -41,7 +41,9 @@ Beyond the paper:
 - Lane sections follow LaneModel.sections. Lanes are linked (predecessor and successor, both ways)
   when their lateral extents overlap at the section change. A lane without predecessor starts at
   width 0 and one without successor ends at width 0; where its markings start at full width it
-  opens along a smoothstep over `taper_length_m`. Linked lanes continue with the same width.
+  opens along a smoothstep over `taper_length_m`. Linked lanes continue with the same width. An
+  outer lane that opens from width 0 is then folded into the section before (width 0 there; see
+  export_sections.py: SUMO warns about the section change, links would be ASAM errors).
 - Road marks: every lane's outer border and the centre lane (leftmost boundary or divider) carry the
   boundary's solid/broken mark with its width, laneChange none/both, and for broken lines with a
   known dash/gap an explicit <type><line length space/>.
@@ -141,6 +143,7 @@ from scipy.spatial import cKDTree
 from lidar2xodr.config import ExportConfig
 from lidar2xodr.data import Boundary, GroundPlanes, LaneModel, RoadLink, RoadNetwork
 from lidar2xodr.errors import InputError
+from lidar2xodr.export_sections import fold_appearing_lanes
 from lidar2xodr.fileio import write_bytes
 
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(32)
@@ -1603,17 +1606,21 @@ def export_network(network: RoadNetwork, planes: GroundPlanes | None, cfg: Expor
     data = _serialise(odr, geo, geodetic, _date(planes), bbox)
     joins = [(str(lk.incoming + 1), str(lk.outgoing + 1)) for lk in network.links if lk.continuation]
     connecting = 0
+    root = etree.fromstring(data, etree.XMLParser(remove_blank_text=True, strip_cdata=False))
     if network.links and cfg.junction_type == "default":
-        root = etree.fromstring(data, etree.XMLParser(remove_blank_text=True, strip_cdata=False))
         joins = _classic_junctions(root, cfg, set(joins))
         connecting = len(root.findall("road")) - n
-        data = etree.tostring(root, pretty_print=True, xml_declaration=True, encoding="UTF-8")
+    folded = fold_appearing_lanes(root) if cfg.fold_appearing_lanes else []
+    for road in dict.fromkeys(folded):
+        _tidy_road(road)
+    data = etree.tostring(root, pretty_print=True, xml_declaration=True, encoding="UTF-8")
     leap, kink, lerr = _measure(data, joins)
     gap = _junction_gap(data) if network.links else 0.0
     write_bytes(path, data)
     roads = list(built.values())
     return ExportSummary(length_m=float(sum(b.length for b in roads)), pieces=sum(b.pieces for b in roads),
-                         lane_sections=sum(len(b.fits) for b in roads), max_leap_m=leap, max_kink_rad=kink,
+                         lane_sections=sum(len(b.fits) for b in roads) - len(folded), max_leap_m=leap,
+                         max_kink_rad=kink,
                          max_length_error_m=lerr, max_reference_dev_m=max(b.reference_dev for b in roads),
                          max_border_dev_m=max(b.border_dev for b in roads), roads=n, junctions=len(odr_junctions),
                          max_junction_gap_m=gap, connecting_roads=connecting)
