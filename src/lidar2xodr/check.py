@@ -28,7 +28,8 @@ Three parts:
   printed lines are warnings, exceptions errors; `max_reference_dev_m` is how far its reference
   points lie from ours. Reported, never part of the verdict: a reader's limits are not the file's
   fault (SUMO 1.15 cannot read OpenDRIVE 1.8 direct junctions, and warns about a lane that appears
-  on a two-way road, which the standard requires to be unlinked; see export_opendrive.py).
+  at a section change on a two-way road, which the standard requires to be unlinked; see
+  export_sections.py for how our maps avoid it).
 
 Verdict: `ok` is False when the ASAM checker reports at least one error, when the project's
 OpenDRIVE reader cannot evaluate the geometry (`continuity.error`), or a leap exceeds
