@@ -306,6 +306,19 @@ def test_elevation_and_superelevation(written) -> None:
     assert np.abs(jump).max() < 1e-6
 
 
+def test_elevation_follows_short_vertical_curves(tmp_path: Path) -> None:
+    """Elevation records every `elevation_record_m` follow a 150 m crest/sag wave; one cubic per 100 m piece cannot."""
+    model = _make_road(900.0, [(0, 0), (900, 0)], z=lambda s: 1.5 * np.sin(2 * np.pi * s / 150.0))
+    s = model.s[5:-5]
+    errs = {}
+    for rec in (None, 25.0):
+        path = tmp_path / f"z{rec}.xodr"
+        export_opendrive(model, None, ExportConfig(elevation_record_m=rec), path)
+        road = next(iter(OpenDriveMap.load(path).roads.values()))
+        errs[rec] = float(np.abs(road.elevation(s) - model.reference[5:-5, 2]).max())
+    assert errs[25.0] <= 0.02 and errs[None] > 0.1, errs
+
+
 def _demo_lane_model(demo: OpenDriveMap) -> tuple[LaneModel, GroundPlanes]:
     """What a perfect lanes stage would report for the project's demo road: centre of the three
     regular lanes as reference, horizontal offsets of the driving-lane borders, ground planes."""

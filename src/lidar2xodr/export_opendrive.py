@@ -47,8 +47,10 @@ Beyond the paper:
 - Road marks: every lane's outer border and the centre lane (leftmost boundary or divider) carry the
   boundary's solid/broken mark with its width, laneChange none/both, and for broken lines with a
   known dash/gap an explicit <type><line length space/>.
-- Elevation: C2 cubic spline of the reference z with one record per planView piece (paper: cubic
-  per piece, no weighting, no look-ahead; continuity in value, slope and curvature is ours).
+- Elevation: C2 cubic spline of the reference z with one record every ~`elevation_record_m` (25 m;
+  the paper fits one cubic per 100 m piece, which misses vertical curves: on curves_elevation its
+  z was 0.34 m RMS, 0.86 m max off the truth while the markings' z was 0.078 m RMS; with 25 m
+  records the map's z is 0.078 m RMS and its grade 0.0011 RMS off; None restores the paper's).
   Superelevation: roll of each scan's ground plane about the road (positive = left side up, as
   OpenDRIVE), running median over scans, lightly smoothed C1 spline with one record per piece (C1
   so the linear roll ramps of road design are followed to ~1 mrad); a single zero record without
@@ -1038,7 +1040,8 @@ def _build_road(model: LaneModel, planes: GroundPlanes | None, cfg: ExportConfig
         if anchor is not None:
             z_cons += [(at, anchor.z), (at, anchor.dz, 1)]
             roll_cons.append((at, anchor.roll))
-    elevation = _spline_records(grid_odr, ref[:, 2], geo_breaks, constraints=tuple(z_cons))
+    z_breaks = _uniform_breaks(0.0, total, cfg.elevation_record_m) if cfg.elevation_record_m else geo_breaks
+    elevation = _spline_records(grid_odr, ref[:, 2], z_breaks, constraints=tuple(z_cons))
     superelevation = _superelevation(planes, ref[:, :2], grid_odr, left, geo_breaks, cfg, tuple(roll_cons))
     slant = 1.0 / np.cos(superelevation(grid_odr))  # t runs along the banked surface
     t_odr = {bid: t * slant for bid, t in t_odr.items()}
