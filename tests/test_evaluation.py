@@ -78,6 +78,32 @@ def _assert_zero(m: dict) -> None:
     assert m["lane_count_agreement"] == pytest.approx(1.0)
     assert m["lane_width"]["bias_m"] == pytest.approx(0.0, abs=1e-9) and m["lane_width"]["pairs"] > 0
     assert m["coverage"] == pytest.approx(1.0)
+    assert m["elevation"]["rmse_m"] == pytest.approx(0.0, abs=1e-9) and m["elevation"]["eval_length_m"] > 0
+
+
+def _with_elevation(src: Path, dst: Path, a: float, b: float) -> Path:
+    """Copy of a one-road map whose elevation is a + b s."""
+    tree = etree.parse(str(src))
+    road = tree.getroot().find("road")
+    prof = etree.Element("elevationProfile")
+    etree.SubElement(prof, "elevation", s="0", a=repr(a), b=repr(b), c="0", d="0")
+    road.find("planView").addnext(prof)
+    tree.write(str(dst))
+    return dst
+
+
+def test_elevation_difference_is_measured_along_the_road(tmp_path: Path) -> None:
+    """A map raised 0.3 m and tilted by 1 % against its flat self: z differs by 0.3 + 0.01 s, lateral not at all."""
+    ref = _map(tmp_path / "ref.xodr", _road("1", 300.0, geom=ARC))
+    gen = _with_elevation(ref, tmp_path / "gen.xodr", 0.3, 0.01)
+    m = compare_maps(gen, ref, CFG)
+    assert m["centerline"]["rmse_m"] == pytest.approx(0.0, abs=1e-9)
+    z = m["elevation"]
+    assert z["mean_m"] == pytest.approx(0.3 + 0.01 * 150.0, rel=0.01)
+    assert z["max_m"] == pytest.approx(0.3 + 0.01 * 300.0, rel=0.01)
+    back = compare_maps(ref, gen, CFG)["elevation"]
+    assert back["mean_m"] == pytest.approx(-z["mean_m"], rel=1e-3)
+    assert back["rmse_m"] == pytest.approx(z["rmse_m"], rel=1e-3)
 
 
 def test_identical_tiny_map_is_zero(tmp_path: Path) -> None:

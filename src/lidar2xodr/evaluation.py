@@ -52,6 +52,12 @@ Matching rule (the README quotes this):
 Frames: when both maps carry a geoReference and they differ, the generated map is projected into the
 reference's frame with pyproj (headings rotated with it); otherwise both are taken to share one frame
 (`frame` in the result says which). Elevation is not part of the lateral distance.
+
+7. `elevation`: for every matched generated centre sample (rule 2), its z minus the reference centre
+   line's z at the foot of the perpendicular (linear between the two reference samples around it):
+   length-weighted RMSE, signed mean, sigma, 95th percentile and maximum of |dz|. Both z are the
+   road surface as the files write it (elevation plus superelevation at the carriageway's centre);
+   when the frames are projected, z is compared as written (no vertical datum shift).
 """
 
 from __future__ import annotations
@@ -121,6 +127,7 @@ class Carriageways:
     s: np.ndarray  # (n,)
     lane_xy: np.ndarray  # (n, L, 2) lane centres, NaN-padded, inner to outer
     lane_width: np.ndarray  # (n, L)
+    centre_z: np.ndarray  # (n,) road surface height at the centre line
     boundaries: Lines
     boundary_query: np.ndarray  # (k,) bool: False for the duplicate outer border of a zero-width lane
 
@@ -156,7 +163,7 @@ def carriageways(odr: Any, step: float, transform: Any = None) -> Carriageways:
     centres: list[tuple[np.ndarray, np.ndarray]] = []
     bounds: list[tuple[np.ndarray, np.ndarray]] = []
     query: list[np.ndarray] = []
-    half, group, s_all, lane_xy, lane_w = [], [], [], [], []
+    half, group, s_all, lane_xy, lane_w, centre_z = [], [], [], [], [], []
     groups: dict[tuple[str, int], int] = {}
     for sec in odr.sample(step):
         rule = getattr(odr.roads[sec.road_id], "rule", "RHT")
@@ -172,6 +179,7 @@ def carriageways(odr: Any, step: float, transform: Any = None) -> Carriageways:
                 border_ids = [run[0] - side, *run]
                 inner, outer = border_xy[border_ids[0]], border_xy[border_ids[-1]]
                 centres.append((0.5 * (inner + outer), travel))
+                centre_z.append(0.5 * (sec.border_xyz[border_ids[0]][:, 2] + sec.border_xyz[border_ids[-1]][:, 2]))
                 half.append(0.5 * np.abs(sec.border_t[border_ids[-1]] - sec.border_t[border_ids[0]]))
                 group.append(np.full(len(sec.s), groups.setdefault((sec.road_id, side), len(groups))))
                 s_all.append(sec.s)
@@ -195,6 +203,7 @@ def carriageways(odr: Any, step: float, transform: Any = None) -> Carriageways:
         s=_cat(s_all, (0,)),
         lane_xy=_cat(pad_xy, (0, 0, 2)),
         lane_width=_cat(pad_w, (0, 0)),
+        centre_z=_cat(centre_z, (0,)),
         boundaries=Lines.con_cat(bounds),
         boundary_query=_cat(query, (0,)).astype(bool),
     )
@@ -262,6 +271,36 @@ def nearest(lines: Lines, q: np.ndarray, q_hdg: np.ndarray, tol_rad: float
         rows = np.arange(len(sel))
         dist[sel], vertex[sel], beyond[sel] = d[rows, j], cand[rows, j], past[rows, j]
     return dist, vertex, beyond
+
+
+def _z_at(lines: Lines, z: np.ndarray, q: np.ndarray, vertex: np.ndarray) -> np.ndarray:
+    """z of `lines` at the foot of the perpendicular from q (m, 2) on the segments around `vertex` (m,)."""
+    best_d = np.full(len(q), np.inf)
+    out = z[vertex].copy()
+    a = lines.xy[vertex]
+    for nb in (lines.prv[vertex], lines.nxt[vertex]):
+        ok = nb >= 0
+        b_idx = np.where(ok, nb, vertex)
+        ab = lines.xy[b_idx] - a
+        u = np.clip(np.sum((q - a) * ab, axis=1) / np.maximum(np.sum(ab * ab, axis=1), 1e-300), 0.0, 1.0)
+        d = np.hypot(*(q - a - u[:, None] * ab).T)
+        take = ok & (d < best_d)
+        out[take] = ((1.0 - u) * z[vertex] + u * z[b_idx])[take]
+        best_d = np.where(take, d, best_d)
+    return out
+
+
+def _elevation(gen: Carriageways, ref: Carriageways, matched: np.ndarray, v_c: np.ndarray) -> dict[str, float]:
+    """Generated minus reference centre-line z on matched samples (rule 7)."""
+    idx = np.flatnonzero(matched)
+    if idx.size == 0:
+        return {**_stats(np.zeros(0), np.zeros(0)), "mean_m": 0.0}
+    dz = gen.centre_z[idx] - _z_at(ref.centre, ref.centre_z, gen.centre.xy[idx], v_c[idx])
+    w = gen.centre.weight[idx]
+    stats = _stats(np.abs(dz), w)
+    stats["mean_m"] = float(np.sum(w * dz) / max(float(w.sum()), 1e-300))
+    stats["std_m"] = float(math.sqrt(max(np.sum(w * (dz - stats["mean_m"]) ** 2) / max(float(w.sum()), 1e-300), 0.0)))
+    return stats
 
 
 def _stats(d: np.ndarray, w: np.ndarray) -> dict[str, float]:
@@ -348,6 +387,7 @@ def compare_maps(generated: Path, reference: Path, cfg: EvaluationConfig) -> dic
         "centerline": _stats(d_c, w_gen),
         "lane_count_agreement": lane_count_agreement,
         "lane_width": width,
+        "elevation": _elevation(gen, ref, matched, v_c),
         "coverage": coverage,
         "reference_eval_length_m": ref_length,
         "frame": frame,
@@ -415,6 +455,8 @@ def print_metrics(metrics: dict[str, Any], console: Console) -> None:
     width = metrics["lane_width"]
     summary.add_row("lane width bias (m)", "no matched lane" if width["bias_m"] is None else f"{width['bias_m']:+.3f}")
     summary.add_row("lane width sigma (m)", "no matched lane" if width["std_m"] is None else f"{width['std_m']:.3f}")
+    z = metrics["elevation"]
+    summary.add_row("elevation RMSE / mean / max (m)", f"{z['rmse_m']:.3f} / {z['mean_m']:+.3f} / {z['max_m']:.3f}")
     summary.add_row("coverage of the reference", f"{metrics['coverage']:.3f}")
     summary.add_row("evaluated reference length (m)", f"{metrics['reference_eval_length_m']:.0f}")
     summary.add_row("frame", metrics["frame"])
