@@ -5,7 +5,7 @@ QC := .venv-qc
 BIN := $(VENV)/bin
 export SUMO_HOME ?= /usr/share/sumo
 
-.PHONY: all demo test bench lint setup clean
+.PHONY: all demo test bench sweep lint setup clean
 all: test
 
 $(VENV)/.stamp-system: scripts/install-system-deps.sh
@@ -35,6 +35,10 @@ test: setup
 
 bench: setup
 	$(BIN)/python bench/run.py
+
+# every shared map, 1 km each: what check says about the built map (issue #6), no targets applied
+sweep: setup
+	$(BIN)/python bench/sweep.py
 
 lint: $(VENV)/.stamp
 	$(BIN)/ruff check src tests bench
