@@ -640,18 +640,20 @@ def _fill(members: np.ndarray, xy: np.ndarray, t: np.ndarray, owner: np.ndarray,
         owner[window[_gated(xy[window], t[window], model, cfg, quantum)]] = label
 
 
+_RING_ITERATIONS = 6
+_RING_TOL_M = 0.01
+
+
 def ground_heights(
     pts: np.ndarray, r: np.ndarray, plane: tuple[np.ndarray, float], cfg: ExtractionConfig
 ) -> np.ndarray:
     """Height of every point above the local ground: piecewise planes over range rings.
 
     Within `ransac_range_m` the scan's plane. Beyond it `ground_rings` rings, each twice as wide as
-    the one before (40-80 m, 80-160 m, 160 m and more with the defaults), get their own plane: a
-    least-squares refit, twice, of the ring's points within `ransac_distance_m` of the plane
-    before it, starting from the points within `ground_ring_window_m` of it; a refit that tilts by
-    more than `ransac_max_tilt_deg` from the plane before it, or rests on fewer than 30 points,
-    keeps that plane. One plane to 200 m misses crests, sags and banked curves by decimetres, so
-    far paint fell out of the road band and far embankments fell in.
+    the one before (40-80 m, 80-160 m, 160 m and more with the defaults), get their own plane
+    (`_ring_plane`), refitted from the ring's points within `ground_ring_window_m` of the plane
+    before it; a refit that fails keeps that plane. One plane to 200 m misses crests, sags and
+    banked curves by decimetres, so far paint fell out of the road band and far embankments fell in.
     """
     n, d = plane
     h = pts @ n + d
@@ -667,20 +669,76 @@ def ground_heights(
             break
         ring = beyond if k == cfg.ground_rings - 1 else beyond & (fr < 2.0 * lo)
         q = np.compress(ring & (np.abs(fh) < cfg.ground_ring_window_m), fp, axis=0)
-        tol = cfg.ground_ring_window_m
-        for _ in range(2):
-            inl = np.compress(np.abs(q @ n + d) < tol, q, axis=0)
-            if len(inl) < 30:
-                break
-            c, cand = _plane_fit(inl)
-            if cand @ n < cos_tilt:
-                break
-            n, d = cand, float(-cand @ c)
-            tol = cfg.ransac_distance_m
+        if len(q) >= cfg.ground_ring_min_cells:
+            refit = _ring_plane(q.take(cell_samples(q, cfg.ground_ring_cell_m), axis=0), n, d, cfg, cos_tilt)
+            if refit is not None:
+                n, d = refit
         fh[beyond] = np.compress(beyond, fp, axis=0) @ n + d
         lo *= 2.0
     h[far] = fh
     return h
+
+
+def _ring_plane(q: np.ndarray, n: np.ndarray, d: float, cfg: ExtractionConfig, cos_tilt: float
+                ) -> tuple[np.ndarray, float] | None:
+    """Robust plane of a ring's density-capped points `q` (one per `ground_ring_cell_m` cell), from the
+    plane (n, d) of the ring before; None keeps that plane.
+
+    Why robust: far from the sensor dark asphalt returns little, and what is left within the window
+    is mostly not road. On a simulated simple_highway drive (2 km, seed 3) the 40-80 m ring's
+    window held 117 points per scan (median), 31 % of them road; the rest were vehicles' rears
+    and embankments 0.3-0.5 m above the road. The former least-squares refit (on the points within
+    the window, then within `ransac_distance_m`) followed them: the ring plane stood 0.13 m
+    (median over scans, 0.24 m at the 95th percentile) off the true road, and a car's rear 70 m
+    ahead lifted it 0.3 m, so its low, bright parts (plate, lights) passed the road band and
+    the paint test and left false lane lines in the marking cloud.
+
+    How: (1) one point per xy cell (`cell_samples`: unbiased, O(n)), so a vehicle's rear, many
+    points stacked in few cells, weighs like a few square metres of road, and the sensor's dense
+    near edge of the ring does not outweigh its far end; (2) iteratively reweighted least squares
+    with Tukey's biweight, whose cut-off starts at `ground_ring_window_m` and is halved down to
+    `ground_ring_scale_m` (graduated: a wide first scale lets a crest or sag that leaves the plane
+    before by a few decimetres across the ring pull the plane along, as the former refit did; the
+    narrow final one gives objects and embankments no weight at all); (3) the refit is kept only
+    when at least `ground_ring_min_cells` cells lie within the final cut-off (a few square metres
+    of support, a vehicle's rear alone never has it) and it tilts less than `ransac_max_tilt_deg`
+    from the plane before.
+
+    Measured (simple_highway 2 km seed 3, every second scan, truth from the simulator's poses;
+    median / 95th percentile of the ring plane's height error over scans, 40-80 m ring): former
+    0.127 / 0.235 m, this 0.007 / 0.023 m; true road points beyond 40 m outside the road band
+    3176 -> ~80 of 16718; points 0.2-2 m above the road inside it 19419 -> ~1100. A plain Tukey
+    refit at 0.15 m (no graduation) was as good there but kept the plane before on a 1500 m
+    crest or sag, where the graduated one follows the road as far as the former refit did.
+    Lowest point per cell instead of any point biased the plane 1-2 cm low on dense ground and
+    was no better on the drive.
+    """
+    nn, dd = n, d
+    res = q @ n + d
+    scale = cfg.ground_ring_window_m
+    for _ in range(_RING_ITERATIONS):
+        w = res * (1.0 / scale)
+        w *= w
+        np.subtract(1.0, w, out=w)
+        np.maximum(w, 0.0, out=w)
+        w *= w
+        sw = float(w.sum())
+        if np.count_nonzero(w) < 3:
+            return None
+        c = w @ q / sw
+        _, vec = np.linalg.eigh((q.T * w) @ q / sw - np.outer(c, c))
+        cand = vec[:, 0] if vec[2, 0] >= 0 else -vec[:, 0]
+        if cand @ n < cos_tilt:
+            return None
+        nn, dd = cand, float(-cand @ c)
+        new = q @ nn + dd
+        moved = float(np.abs(new - res).max())
+        res = new
+        if scale <= cfg.ground_ring_scale_m and moved < _RING_TOL_M:
+            break
+        scale = max(0.5 * scale, cfg.ground_ring_scale_m)
+    support = np.count_nonzero(np.abs(res) < cfg.ground_ring_scale_m)
+    return (nn, dd) if support >= cfg.ground_ring_min_cells else None
 
 
 _CELL_BITS = 16
