@@ -499,3 +499,14 @@ def test_aimotive_highway_gives_two_through_lanes(shared_data: Path) -> None:
     widths = -np.diff(t, axis=0)
     ok = np.isfinite(widths) & (widths >= 3.2) & (widths <= 4.0)
     assert widths.shape[0] == 2 and np.all(ok.mean(axis=1) > 0.9)
+
+
+def test_carriageway_choice_without_lines_is_empty_not_a_crash() -> None:
+    """A drive whose candidates all fall out before the structure step (seen on a simulated
+    Ex_Line-Spiral-Arc drive) reached the carriageway choice with no line: it raised ValueError."""
+    from lidar2xodr.lanes import _choose_carriageway
+
+    for b_n, m in ((0, 12), (3, 0)):
+        keep = _choose_carriageway(np.full((b_n, m), np.nan), np.zeros((b_n, m), bool), None,
+                                   np.zeros(b_n, bool), np.ones(b_n), LCFG)
+        assert keep.shape == (b_n, m) and not keep.any()

@@ -722,6 +722,8 @@ def _choose_carriageway(
     carriageways: each edge line has its own lanes on its other side).
     """
     b_n, m = t.shape
+    if b_n == 0 or m == 0:
+        return np.zeros_like(on)
     order, ts = _sorted_columns(t, on)
     present = np.isfinite(ts)
     gap = ts[:-1] - ts[1:]
