@@ -209,6 +209,13 @@ class LanesConfig(_Section):
     divider_max_wrong_side_m: float = Field(10.0, description="ours: stations with the ego on the wrong side of a "
                                             "divider candidate it may have (projection noise at a U-turn); a lane "
                                             "change across it lasts far longer")
+    traffic_directions: bool = Field(True, description="ours: lanes with oncoming recorded traffic (the drive's "
+                                     "object list) left of lanes with traffic along the drive make a two-way road "
+                                     "where paint and ego gave no divider (lane_directions.py)")
+    traffic_min_m: float = Field(40.0, description="ours: metres of tracked traffic in a lane that decide its "
+                                 "direction")
+    traffic_share: float = Field(0.8, description="ours: share of a lane's tracked traffic that must run one way")
+    traffic_min_speed_mps: float = Field(3.0, description="ours: slower track samples say nothing about a direction")
     branch_widening_m: float = Field(1.0, description="ours: an outermost lane wider than its median width by this "
                                      "at a section end (start) leaves (joins) the road: a split, exit or merge")
     branch_window_m: float = Field(120.0, description="ours: a branch is measured from the markings within this "

@@ -104,8 +104,24 @@ class BuildPipeline:
             candidates = find_candidates(cloud.xyz, self.config.markings)
         with self._stage("lanes"):
             model = build_lane_model(cloud, candidates, self.config.lanes)
+            model.warnings.extend(self._traffic_directions(model, cloud))
             network = build_network(cloud, model, self.config.lanes, self.config.markings, where=str(self.drive))
         return model, network
+
+    def _traffic_directions(self, model: LaneModel, cloud: MarkingCloud) -> list[str]:
+        """Dividers from the recorded traffic's directions (lane_directions.py); no object list, no change."""
+        from lidar2xodr.lane_directions import apply_traffic_directions
+        from lidar2xodr.tracks import load_tracks
+
+        if not self.config.lanes.traffic_directions:
+            return []
+        try:
+            tracks = load_tracks(self.drive, cloud.trajectory, cfg=self.config)
+        except InputError as exc:
+            if exc.problem.startswith(("no object tracks found", "unknown track format")):
+                return []
+            return [f"the object list was not used for lane directions: {exc}"]
+        return apply_traffic_directions(model, tracks.tracks, cloud.trajectory, self.config.lanes)
 
     def run(self) -> BuildResult:
         cloud = self.extract()
