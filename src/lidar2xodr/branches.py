@@ -51,6 +51,7 @@ _NORMAL_MARGIN_M = 0.3
 _NEW_LANE_SHARE = 0.7
 _GORE_M = 15.0
 _MAX_HEADING_DEG = 30.0
+_TAPER_TYPES = ("entry", "exit")  # lanes of the road itself that end or begin in a taper (lanes stage)
 
 
 @dataclass
@@ -89,6 +90,8 @@ def find_events(model: LaneModel, cfg: LanesConfig) -> list[Event]:
         if len(ks) < 6:
             continue
         for lane, side in _outer_lanes(sec):
+            if sec.lane_types is not None and sec.lane_types[lane] in _TAPER_TYPES:
+                continue
             w = _lane_width(model, sec, lane, ks)
             ok = np.isfinite(w)
             normal = w[ok & (w <= cfg.max_lane_width_m)]
@@ -148,10 +151,12 @@ def slice_model(model: LaneModel, k0: int, k1: int, drop: set[int] | None = None
         divider = sec.divider_id if sec.divider_id in ids[1:-1] else None
         if len(ids) < 2:
             continue
-        if sections and sections[-1].boundary_ids == ids and sections[-1].divider_id == divider:
+        types = _kept_types(sec, ids)
+        if sections and sections[-1].boundary_ids == ids and sections[-1].divider_id == divider \
+                and sections[-1].lane_types == types:
             sections[-1].s_end = b - s0
         else:
-            sections.append(LaneSection(a - s0, b - s0, ids, divider))
+            sections.append(LaneSection(a - s0, b - s0, ids, divider, types))
     if sections:
         sections[0].s_start = 0.0
         sections[-1].s_end = s1 - s0
@@ -164,11 +169,22 @@ def slice_model(model: LaneModel, k0: int, k1: int, drop: set[int] | None = None
                      boundaries=boundaries, sections=sections, origin=model.origin, warnings=[])
 
 
+def _kept_types(sec: LaneSection, ids: list[int]) -> list[str] | None:
+    """Lane types of the lanes between consecutive kept boundaries `ids` (a lane that spans a dropped
+    boundary takes the type of its inner part, the lane nearer the road's middle)."""
+    if sec.lane_types is None:
+        return None
+    pos = [sec.boundary_ids.index(i) for i in ids]
+    types = [sec.lane_types[a] if a == 0 else sec.lane_types[b - 1] for a, b in zip(pos[:-1], pos[1:], strict=True)]
+    return None if all(t == "driving" for t in types) else types
+
+
 def flip_model(model: LaneModel) -> LaneModel:
     """The same road described in the opposite direction (left and right swap)."""
     length = float(model.s[-1])
     boundaries = [replace(b, t=-np.asarray(b.t)[::-1].copy()) for b in model.boundaries]
-    sections = [LaneSection(length - sec.s_end, length - sec.s_start, list(reversed(sec.boundary_ids)), sec.divider_id)
+    sections = [LaneSection(length - sec.s_end, length - sec.s_start, list(reversed(sec.boundary_ids)), sec.divider_id,
+                            None if sec.lane_types is None else list(reversed(sec.lane_types)))
                 for sec in reversed(model.sections)]
     return LaneModel(s=(length - model.s[::-1]).copy(), reference=model.reference[::-1].copy(), boundaries=boundaries,
                      sections=sections, candidates=model.candidates, origin=model.origin, warnings=list(model.warnings))

@@ -57,6 +57,13 @@ class ExtractionConfig(_Section):
     odometry_iterations: int = Field(2, description="ours: deskew-and-register rounds per scan")
     odometry_max_speed_mps: float = Field(70.0, description="ours: upper end of the start-speed search")
     odometry_bootstrap_s: float = Field(0.3, description="ours: time between the two scans of the start-speed search")
+    odometry_ground: bool = Field(True, description="ours: LiDAR odometry lifts each scan's road surface onto the "
+                                  "road already mapped (height, roll, pitch): kills the pitch drift of registration")
+    odometry_ground_cell_m: float = Field(0.5, gt=0, description="ours: xy cell of the odometry's road height map")
+    odometry_ground_range_m: float = Field(60.0, gt=0, description="ours: road points within this radius feed it")
+    odometry_ground_scale_m: float = Field(0.1, gt=0, description="ours: cut-off of the height fit's Tukey weights")
+    odometry_ground_min_cells: int = Field(50, ge=3, description="ours: fewer shared cells leave the pose as it is")
+    odometry_ground_keep_m: float = Field(120.0, gt=0, description="ours: road cells farther behind are forgotten")
     auto_method: Literal["local", "drive"] = Field(
         "local", description="ours, with auto_threshold: 'local' = paint is a bright outlier of the road surface "
         "around it (per point: range-, beam- and sensor-independent); 'drive' = one threshold per drive from the "
@@ -198,6 +205,18 @@ class LanesConfig(_Section):
     stable_lane_slope: float = Field(0.02, description="ours: a lane is stable where its width changes less than "
                                      "this per metre; every lane needs a stable stretch of min_section_length_m")
     max_taper_length_m: float = Field(300.0, description="ours: longest lane taper followed back to zero width")
+    taper_min_length_m: float = Field(20.0, description="ours: a straight line converging onto (diverging from) "
+                                      "the carriageway's right edge makes an entry (exit) lane only when marking "
+                                      "points lie on it at stations spanning this much road")
+    taper_max_slope: float = Field(0.2, description="ours: steepest taper (width change per metre, ~11 deg); the "
+                                   "flattest is stable_lane_slope (flatter lines run beside the road: guard rails)")
+    taper_line_tolerance_m: float = Field(0.3, description="ours: points within this of a straight taper line lie "
+                                          "on it; their RMS distance must stay below half of it (one consistent "
+                                          "angle of convergence, not clutter)")
+    taper_meet_width_m: float = Field(1.5, description="ours: a taper line must be seen this close to the edge it "
+                                      "meets; the meeting point is extrapolated along the line from there")
+    taper_max_gap_m: float = Field(15.0, description="ours: a taper line is followed across unobserved stretches up "
+                                   "to this long (a broken line's gap, an occlusion)")
     solid_min_run_m: float = Field(20.0, description="ours: painted runs longer than this (length-weighted median) "
                                    "make a solid line")
     divider_min_length_m: float = Field(300.0, description="ours: a solid line with lanes on both sides that the "

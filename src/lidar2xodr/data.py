@@ -122,12 +122,16 @@ class LaneSection:
     `divider_id` is the boundary that separates the two directions of a road whose carriageways
     are only separated by paint (None: one direction only, e.g. a motorway carriageway beside a
     physical median). Boundaries left of it bound the lanes of the opposite direction.
+    `lane_types` names the OpenDRIVE type of each lane, left to right (lane k lies between
+    boundary_ids[k] and boundary_ids[k + 1]): "driving", or "entry" / "exit" for an acceleration /
+    deceleration lane that ends / begins in a taper; None means every lane is "driving".
     """
 
     s_start: float
     s_end: float
     boundary_ids: list[int]
     divider_id: int | None = None
+    lane_types: list[str] | None = None
 
 
 @dataclass

@@ -44,6 +44,10 @@ Beyond the paper:
   opens along a smoothstep over `taper_length_m`. Linked lanes continue with the same width. An
   outer lane that opens from width 0 is then folded into the section before (width 0 there; see
   export_sections.py: SUMO warns about the section change, links would be ASAM errors).
+- Lane types from LaneSection.lane_types (None: all "driving"): "entry" / "exit" for an acceleration /
+  deceleration lane that ends / begins in a taper. Such a lane goes to width 0 only at its narrow end;
+  at its wide end, where its outer line was first (last) seen, it starts (ends) at the measured width
+  without a link: the lane goes on unobserved (a ramp's lane), so it does not open along the taper.
 - Road marks: every lane's outer border and the centre lane (leftmost boundary or divider) carry the
   boundary's solid/broken mark with its width, laneChange none/both, and for broken lines with a
   known dash/gap an explicit <type><line length space/>.
@@ -154,6 +158,7 @@ _GL_W = 0.5 * _GL_W
 _GEOMETRY_SMOOTH = 1e-6  # P-spline penalty that only bridges data gaps (geometry, widths, elevation)
 _LINK_MIN_OVERLAP_M = 0.3
 _WHERE = "lane model"
+_TAPER_TYPES = ("entry", "exit")  # lanes that end or begin in a taper (LaneSection.lane_types)
 _CUT_EPS = 1e-9
 _LOCAL_TMERC = "+proj=tmerc +lat_0=0 +lon_0=0 +k=1 +x_0=0 +y_0=0 +ellps=WGS84 +units=m +no_defs"
 
@@ -450,6 +455,7 @@ class _SectionFit:
     pred: dict[int, int]  # lane index -> predecessor lane index in the previous section
     succ: dict[int, int]
     centre: int = 0  # position in `ids` of the boundary lane 0 lies on
+    types: list[str] | None = None  # OpenDRIVE lane type of each lane (None: all driving)
 
     def lane_id(self, i: int) -> int:
         """OpenDRIVE id of lane i (between ids[i] and ids[i + 1]): right of lane 0 negative, left positive."""
@@ -517,12 +523,17 @@ class _LaneEnd:
 def _lane_fit(grid_s: np.ndarray, t_data: dict[int, np.ndarray],
               sections: list[tuple[float, float, list[int], int]],
               cfg: ExportConfig, start: _LaneEnd | None = None, end: _LaneEnd | None = None,
-              where: str = _WHERE) -> tuple[_Records, list[_SectionFit]]:
+              where: str = _WHERE, lane_types: list[list[str] | None] | None = None,
+              ) -> tuple[_Records, list[_SectionFit]]:
     """laneOffset and per-section widths from the boundaries' t on the common station grid.
 
     Each section names the position of its centre boundary (lane 0) in its boundary list. Lanes are
     linked only to lanes on the same side of lane 0 (the two directions never continue each other).
     `start` / `end` constrain the road's first / last cross-section where it meets a junction.
+    `lane_types` (per section, per lane; None: driving): an entry or exit lane (a taper) starts or ends
+    at zero width only at its narrow end (measured under half its widest); at its wide end, where its
+    outer line was first or last seen, it keeps the measured width (the lane goes on unobserved: a
+    ramp's lane), rather than opening along the taper like a lane that appears.
     """
     masks = [(grid_s >= s0 - 1e-9) & (grid_s <= s1 + 1e-9) for s0, s1, _, _ in sections]
     targets: list[np.ndarray] = []  # per section: (n_boundaries, n_samples)
@@ -565,15 +576,20 @@ def _lane_fit(grid_s: np.ndarray, t_data: dict[int, np.ndarray],
         lead = arr[c].copy()
         breaks = _uniform_breaks(s0, s1, cfg.lane_record_m)
         widths = []
+        types = lane_types[j] if lane_types is not None else None
         for i in range(len(ids) - 1):
             w = arr[i] - arr[i + 1]
             cons: list[tuple[float, ...]] = []
             opens = j > 0 and i not in preds[j] or j == 0 and start is not None and i in start.zero
             ends = j < last and i not in succs[j] or j == last and end is not None and i in end.zero
+            if types is not None and types[i] in _TAPER_TYPES:
+                wide = 0.5 * float(np.max(w))
+                opens = opens and float(np.mean(w[s <= s0 + 5.0])) < wide
+                ends = ends and float(np.mean(w[s >= s1 - 5.0])) < wide
             if opens:
                 w = _taper(w, s - s0, taper)
                 cons.append((s0, 0.0))
-            elif j > 0:
+            elif j > 0 and i in preds[j]:
                 cons.append((s0, float(fits[j - 1].widths[preds[j][i]](np.array([s0]))[0])))
             elif start is not None and i in start.widths:
                 cons += [(s0, start.widths[i][0]), (s0, start.widths[i][1], 1)]
@@ -588,7 +604,7 @@ def _lane_fit(grid_s: np.ndarray, t_data: dict[int, np.ndarray],
             elif tapered and i == c - 1:
                 lead = arr[c - 1] - w
             widths.append(_spline_records(s, w, breaks, constraints=tuple(cons), c1=True))
-        fits.append(_SectionFit(s0, s1, ids, widths, preds[j], succs[j], c))
+        fits.append(_SectionFit(s0, s1, ids, widths, preds[j], succs[j], c, types))
         offset_s.append(s)
         offset_t.append(lead)
     all_breaks = np.unique(np.concatenate([_uniform_breaks(a, b, cfg.lane_record_m) for a, b, _, _ in sections]))
@@ -641,6 +657,11 @@ def _check_model(model: LaneModel, cfg: ExportConfig, where: str = _WHERE) -> No
                                      f"boundaries {sec.boundary_ids}")
         if sec.s_end <= sec.s_start:
             raise InputError(where, f"lane section {j} is empty (s {sec.s_start} to {sec.s_end})")
+        types = sec.lane_types
+        if types is not None and (len(types) != len(sec.boundary_ids) - 1
+                                  or not all(v in xodr.LaneType.__members__ for v in types)):
+            raise InputError(where, f"lane section {j}: lane_types {types!r} are not one OpenDRIVE lane type "
+                                     f"per lane ({len(sec.boundary_ids) - 1} lanes)")
         if j and abs(sec.s_start - model.sections[j - 1].s_end) > 0.5:
             raise InputError(where, f"lane section {j} starts at {sec.s_start:.2f} m but section {j - 1} "
                                      f"ends at {model.sections[j - 1].s_end:.2f} m")
@@ -744,7 +765,8 @@ def _build_lanes(offset: _Records, fits: list[_SectionFit], bounds: dict[int, Bo
         sec = xodr.LaneSection(float(fit.s0), centre)
         order = list(range(fit.centre - 1, -1, -1)) + list(range(fit.centre, len(fit.widths)))
         for i in order:
-            lane = _lane(xodr.LaneType.driving, fit.widths[i], fit.s0)
+            kind = xodr.LaneType.driving if fit.types is None else getattr(xodr.LaneType, fit.types[i])
+            lane = _lane(kind, fit.widths[i], fit.s0)
             if i in fit.pred:
                 lane.add_link("predecessor", fits[j - 1].lane_id(fit.pred[i]))
             if i in fit.succ:
@@ -1051,7 +1073,8 @@ def _build_road(model: LaneModel, planes: GroundPlanes | None, cfg: ExportConfig
     sections = [(float(a), float(b), list(sec.boundary_ids),
                  0 if sec.divider_id is None else list(sec.boundary_ids).index(sec.divider_id))
                 for a, b, sec in zip(sec_s, sec_e, model.sections, strict=True)]
-    offset, fits = _lane_fit(grid_odr, t_odr, sections, cfg, lane_ends[0], lane_ends[1], where)
+    offset, fits = _lane_fit(grid_odr, t_odr, sections, cfg, lane_ends[0], lane_ends[1], where,
+                             [sec.lane_types for sec in model.sections])
 
     planview = xodr.PlanView()
     for i in range(len(plan.s)):

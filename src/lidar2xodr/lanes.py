@@ -41,6 +41,17 @@ Method and the decisions the paper leaves open (parameters in `LanesConfig`):
   or no longer observed) are carried to the ends at a constant offset from a neighbour. Two
   rounds, so extensions count as measured lines. Sections are stretches with a constant
   boundary set; shorter than `min_section_length_m` they join a neighbour.
+- Entry and exit lanes that end or begin in a taper (`_taper_lanes`): a straight marking line that
+  converges onto (diverges from) the carriageway's right edge at a steady angle never has a stable lane
+  beside it, so the structure drops it; it is found again from the marking points beyond the edge (a
+  windowed Hough vote, then least squares) and becomes a lane from where it is first (last) seen, at
+  the width measured there, to where its width reaches zero (a section boundary at both ends), when it
+  is long enough, straight, seen close to the edge and never farther out than a lane width, and the
+  edge goes on as the outermost line past the meeting point (`taper_*` in `LanesConfig`). Its points
+  are kept out of the edge's fit (the marking chains often join a converging line to the edge, which
+  then bends towards it). Right-hand traffic: a lane narrowing to zero in the ego's direction is
+  "entry", one widening from zero "exit" (`LaneSection.lane_types`); the other lanes are "driving"
+  (an added lane that grows from zero and goes on cannot be told from an exit lane by its markings).
 - Beyond the paper: solid/broken from the painted runs along s (length-weighted median run above
   `solid_min_run_m` = solid; dash and gap are medians of runs and gaps), and the marking width
   from the spread of the points across the fitted curve, unmixing the paint (uniform) from the
@@ -936,6 +947,270 @@ def _extend(
     return True
 
 
+# --------------------------------------------------------------------------------------------
+# entry and exit lanes that end or begin in a taper
+
+
+LANE_TYPES = ("driving", "entry", "exit")
+_SLOPE_STEP = 0.005  # slope grid of the taper line search: 0.25 m over a 50 m window
+
+
+@dataclass
+class _Taper:
+    """A lane between the carriageway's edge (row `outer`) and a straight line converging onto it.
+
+    `t` is the line's offset at every station (NaN outside the lane's stations k0..k1, 0 width at the
+    narrow end), `points` the marking points on it, `narrow_last` whether its width shrinks along s,
+    `side` -1 for the right of the carriageway in s/t (+1 left), `first_width` its width at the wide
+    end, where the line was first (last) seen.
+    """
+
+    row: int
+    outer: int
+    k0: int
+    k1: int
+    t: np.ndarray
+    points: np.ndarray
+    narrow_last: bool
+    side: int
+    first_width: float
+    angle_deg: float
+
+
+def _straight_lines(s: np.ndarray, w: np.ndarray, k: np.ndarray, step: float,
+                    cfg: LanesConfig) -> list[tuple[float, float, float, float]]:
+    """Seeds (a, b, s_lo, s_hi) of straight lines w = a + b s with a taper's slope in the points (s, w).
+
+    Per window of 2 x `taper_min_length_m` (half overlapping): a Hough vote over a grid of slopes
+    (`stable_lane_slope` to `taper_max_slope`, both signs) and intercept bands `taper_line_tolerance_m`
+    wide (two grids half a band apart), where every station votes once per band (a blob or a line
+    crossing the road at one station does not outvote a line along it). A window's best band is a
+    seed when it holds points at a quarter of `taper_min_length_m` of stations or more.
+    """
+    tol = cfg.taper_line_tolerance_m
+    half = np.arange(cfg.stable_lane_slope, cfg.taper_max_slope + 1e-9, _SLOPE_STEP)
+    slopes = np.concatenate([-half[::-1], half])
+    window = 2.0 * cfg.taper_min_length_m
+    near = w <= cfg.max_lane_width_m + tol
+    if not near.any():
+        return []
+    cell = np.unique(np.stack([k[near], np.floor(w[near] / 0.1).astype(np.int64)], axis=1), axis=0)
+    kc, wc = cell[:, 0], (cell[:, 1] + 0.5) * 0.1
+    sc = kc * step
+    need = 0.25 * cfg.taper_min_length_m / step
+    n_k = int(kc.max()) + 1
+    seeds = []
+    for lo in np.arange(sc.min(), sc.max() + 1e-9, 0.5 * window):
+        m = (sc >= lo) & (sc < lo + window)
+        if len(np.unique(kc[m])) < need:
+            continue
+        mid = lo + 0.5 * window
+        c = wc[m][None, :] - slopes[:, None] * (sc[m][None, :] - mid)
+        best = (0, 0.0, 0.0)
+        for shift in (0.0, 0.5):
+            band = np.floor(c / tol + shift).astype(np.int64)
+            b0 = int(band.min())
+            n_band = int(band.max()) - b0 + 1
+            code = np.arange(len(slopes))[:, None] * n_band + (band - b0)
+            votes = np.bincount(np.unique(code * n_k + kc[m][None, :]) // n_k)
+            j = int(np.argmax(votes))
+            if votes[j] > best[0]:
+                i_slope, i_band = divmod(j, n_band)
+                best = (int(votes[j]), float(slopes[i_slope]), (i_band + b0 + 0.5 - shift) * tol)
+        if best[0] >= need:
+            seeds.append((best[2] - best[1] * mid, best[1], float(lo), float(lo + window)))
+    return seeds
+
+
+def _line_run(s: np.ndarray, w: np.ndarray, k: np.ndarray, line: tuple[float, float], seed: tuple[float, float],
+              step: float, cfg: LanesConfig) -> np.ndarray:
+    """Indices of the points on the line (within `taper_line_tolerance_m`) in its stretch that overlaps
+    the seed window most, stretches being split at gaps over `taper_max_gap_m` without points."""
+    on = np.flatnonzero(np.abs(w - (line[0] + line[1] * s)) < cfg.taper_line_tolerance_m)
+    if len(on) == 0:
+        return on
+    ks = np.unique(k[on])
+    cut = np.flatnonzero(np.diff(ks) * step > cfg.taper_max_gap_m)
+    firsts, lasts = ks[np.r_[0, cut + 1]], ks[np.r_[cut, len(ks) - 1]]
+    inside = [np.sum((ks >= a) & (ks <= b) & (ks * step >= seed[0]) & (ks * step < seed[1]))
+              for a, b in zip(firsts, lasts, strict=True)]
+    j = int(np.argmax(inside))
+    return on[(k[on] >= firsts[j]) & (k[on] <= lasts[j])]
+
+
+def _taper_lanes(pts: _Points, structure: _Structure, side: int, step: float,
+                 cfg: LanesConfig) -> tuple[list[_Taper], list[str]]:
+    """Entry and exit lanes on the `side` of the carriageway from straight lines converging onto its edge.
+
+    A marking line that runs at a steady angle onto the outermost kept line (or away from it) bounds a
+    lane that ends (begins) where the two meet: a taper. Such a line never has a stable lane beside it,
+    so the lane structure drops it; here it is found again from the marking points lying more than
+    `assign_distance_m` beyond the edge (`_straight_lines`, then refitted by least squares on the points
+    of its stretch until that stretch stops changing) and kept only when all of these hold:
+    - points lie on it at stations spanning `taper_min_length_m`, its width changes by
+      `stable_lane_slope` to `taper_max_slope` per metre and the points' RMS distance to it is at most
+      half `taper_line_tolerance_m` (one consistent angle: clutter, posts and blobs are not straight);
+    - it is seen within `taper_meet_width_m` of the edge (its meeting point, where the width reaches
+      zero, is extrapolated from there) and nowhere farther out than `max_lane_width_m` (a ramp's edge
+      goes on diverging beyond a lane width; a guard rail never comes that close at an angle);
+    - the edge it meets is one line over the whole lane and goes on as the outermost line for
+      `min_section_length_m` beyond the meeting point (or to the end of the road): no lane lies
+      outside it there (where a ramp's edge meets the road at a gore, the ramp's lane goes on outside);
+    - the lane, from where its line is first (last) seen to the meeting point, is at least
+      `min_section_length_m` long (a shorter one could not be a lane section; a note says so).
+    Its points are all those within `taper_line_tolerance_m` of the line on the lane's stations, the line
+    taken both as a width from the edge and as a straight line in the frame's own offsets (an edge bent
+    towards it, or a frame bent by such an edge, does not hide its points), also those close to the edge
+    near the meeting point and up to `taper_meet_width_m` / slope beyond it (an edge bent by them puts
+    the meeting point too far out): they are kept out of the edge's fit, which they would bend towards
+    the line.
+    The lane starts where its line is first seen (ends where last seen), at the width measured there:
+    nothing tells what the unseen road before it holds. Its border is the fitted straight line, so the
+    width falls linearly to exactly zero at the meeting station. Overlapping lanes: the one with points
+    at most stations wins. Returns the tapers (rows not yet assigned) and notes.
+    """
+    on, t = structure.on, structure.t
+    n_rows, m = on.shape
+    valid = on.sum(axis=0) >= 2
+    key = np.where(on, side * np.where(on, t, 0.0), -np.inf)
+    outer_row = np.argmax(key, axis=0)
+    edge = t[outer_row, np.arange(m)]
+    k_all = pts.k
+    use = pts.inside & valid[k_all]
+    w_all = side * (pts.t - np.where(use, edge[k_all], 0.0))
+    sel = np.flatnonzero(use & (w_all > cfg.assign_distance_m) & (w_all < 2.0 * cfg.max_lane_width_m))
+    if len(sel) < 10:
+        return [], []
+    s, w, k = pts.s[sel], w_all[sel], k_all[sel]
+    tol = cfg.taper_line_tolerance_m
+    found: list[tuple[int, _Taper]] = []
+    notes: list[str] = []
+    seen_lines: set[tuple[int, int]] = set()
+    for a, b, lo, hi in _straight_lines(s, w, k, step, cfg):
+        run = _line_run(s, w, k, (a, b), (lo, hi), step, cfg)
+        for _ in range(20):
+            if len(run) < 3:
+                break
+            slope, icpt = np.polyfit(s[run], w[run], 1)
+            again = _line_run(s, w, k, (float(icpt), float(slope)), (lo, hi), step, cfg)
+            if np.array_equal(again, run):
+                break
+            run = again
+        if len(run) < 3:
+            continue
+        slope, icpt = np.polyfit(s[run], w[run], 1)
+        line = (float(icpt), float(slope))
+        ks = np.unique(k[run])
+        if (int(ks[0]), int(ks[-1])) in seen_lines:
+            continue
+        seen_lines.add((int(ks[0]), int(ks[-1])))
+        a, b = line
+        rms = float(np.sqrt(np.mean((w[run] - (a + b * s[run])) ** 2)))
+        if (len(ks) * step < cfg.taper_min_length_m or not cfg.stable_lane_slope <= abs(b) <= cfg.taper_max_slope
+                or rms > 0.5 * tol or float(w[run].max()) > cfg.max_lane_width_m + tol):
+            continue
+        narrow_last = b < 0
+        k_near, k_far = (int(ks[-1]), int(ks[0])) if narrow_last else (int(ks[0]), int(ks[-1]))
+        if a + b * k_near * step > cfg.taper_meet_width_m:
+            continue
+        k_meet = int(round(-a / b / step))
+        if not 0 <= k_meet < m or not valid[k_meet]:
+            continue
+        k0, k1 = (k_far, k_meet) if narrow_last else (k_meet, k_far)
+        rows = np.unique(outer_row[k0 : k1 + 1])
+        if len(rows) != 1 or not valid[k0 : k1 + 1].all():
+            continue
+        clear = int(round(cfg.min_section_length_m / step))
+        beyond = np.arange(k_meet + 1, k_meet + clear + 1) if narrow_last else np.arange(k_meet - clear, k_meet)
+        beyond = beyond[(beyond >= 0) & (beyond < m)]
+        beyond = beyond[valid[beyond]]
+        if np.any(outer_row[beyond] != rows[0]):
+            continue
+        if (k1 - k0 + 1) * step < cfg.min_section_length_m:
+            s_at = float(np.flatnonzero(valid)[0]) * step
+            notes.append(f"a line converging onto the carriageway's edge on s {k0 * step - s_at:.0f}-"
+                         f"{k1 * step - s_at:.0f} m makes no lane: shorter than {cfg.min_section_length_m:g} m")
+            continue
+        kk = np.arange(k0, k1 + 1)
+        width = np.clip(a + b * kk * step, 0.0, None)
+        width[kk == k_meet] = 0.0
+        row_t = np.full(m, np.nan)
+        row_t[kk] = edge[kk] + side * width
+        in_frame = np.polyfit(s[run], pts.t[sel[run]], 1)
+        line_w = a + b * pts.s
+        on_line = (np.abs(pts.t - np.polyval(in_frame, pts.s)) < tol) | (
+            use & (line_w > tol) & (np.abs(w_all - line_w) < tol))
+        ext = int(round(cfg.taper_meet_width_m / abs(b) / step))
+        lo_k, hi_k = (k0, k1 + ext) if narrow_last else (k0 - ext, k1)
+        near = pts.inside & (pts.k >= lo_k) & (pts.k <= hi_k) & on_line
+        taper = _Taper(-1, int(rows[0]), k0, k1, row_t, np.flatnonzero(near), narrow_last, side,
+                       float(a + b * k_far * step), float(np.degrees(np.arctan(abs(b)))))
+        found.append((len(ks), taper))
+    kept: list[_Taper] = []
+    for _, taper in sorted(found, key=lambda x: (-x[0], x[1].k0)):
+        if all(taper.k1 < other.k0 or taper.k0 > other.k1 for other in kept):
+            kept.append(taper)
+    for i, taper in enumerate(sorted(kept, key=lambda x: x.k0)):
+        taper.row = n_rows + i
+    return sorted(kept, key=lambda x: x.k0), notes
+
+
+def _add_tapers(fit: _Fit, structure: _Structure, label: np.ndarray, tapers: list[_Taper]) -> None:
+    """Append each taper's line as a measured, kept boundary row and give it its points."""
+    for taper in tapers:
+        fit.t = np.vstack([fit.t, taper.t[None, :]])
+        fit.support = np.append(fit.support, float(len(taper.points)))
+        structure.on = np.vstack([structure.on, np.isfinite(taper.t)[None, :]])
+        structure.t = np.vstack([structure.t, taper.t[None, :]])
+        label[taper.points] = taper.row
+
+
+def _travel_sign(frame: Frame, ego: np.ndarray | None) -> int:
+    """+1 when the ego first travels along s on the frame (the kept carriageway is the one it drove
+    first), -1 against; +1 without a trajectory (s runs away from the drive's start)."""
+    if ego is None or len(ego) < 2:
+        return 1
+    s, _, inside = frame.project(ego)
+    ds = np.gradient(s)
+    moving = np.flatnonzero(inside & (np.abs(ds) > 1e-3))
+    return 1 if len(moving) == 0 or ds[moving[0]] > 0 else -1
+
+
+def _type_tapers(model: LaneModel, tapers: list[_Taper], new_id: np.ndarray, travel: int) -> None:
+    """Lane types of the taper lanes in the model's sections, and a warning per lane built.
+
+    Right-hand traffic: the lane travels like the ego (`travel`: +1 along s); one whose width shrinks
+    to zero in its travel direction is an entry (acceleration) lane, one that grows from zero an exit
+    (deceleration) lane.
+    """
+    for taper in tapers:
+        bid = int(new_id[taper.row])
+        kind = "entry" if taper.narrow_last == (travel > 0) else "exit"
+        secs = []
+        for sec in model.sections:
+            ids = sec.boundary_ids
+            end = ids[0] if taper.side > 0 else ids[-1]
+            if end != bid:
+                continue
+            lane = 0 if taper.side > 0 else len(ids) - 2
+            sec.lane_types = list(sec.lane_types or ["driving"] * (len(ids) - 1))
+            sec.lane_types[lane] = kind
+            secs.append(sec)
+        side = "right" if taper.side * travel < 0 else "left"
+        if not secs:
+            model.warnings.append(f"an {kind} lane on the {side} (boundary {bid}) was left out of the lane sections")
+            continue
+        outer = [i for i in secs[0].boundary_ids if i != bid][-1 if taper.side < 0 else 0]
+        s0, s1 = secs[0].s_start, secs[-1].s_end
+        verb = "closes onto" if kind == "entry" else "opens from"
+        seen = "first" if kind == "entry" else "last"
+        model.warnings.append(
+            f"{kind} lane on the {side} on s {s0:.0f}-{s1:.0f} m: a taper, its outer line (boundary {bid}) "
+            f"{verb} boundary {outer} at {taper.angle_deg:.1f} deg ({taper.first_width:.1f} m wide where "
+            f"{seen} seen)"
+        )
+
+
 def _sections(
     on: np.ndarray, t: np.ndarray, s: np.ndarray, min_len: float
 ) -> tuple[list[LaneSection], np.ndarray, np.ndarray]:
@@ -1130,30 +1405,50 @@ def build_lane_model(
     ego = cloud.trajectory.positions[:, :2] if len(cloud.trajectory) else None
     lam = _lam(cfg.boundary_smoothing_m, step)
     structure = fit = None
+    travel = _travel_sign(frame, ego)
+    tapers: list[_Taper] = []
+    taper_notes: list[str] = []
+    off = np.zeros(len(xyz), dtype=bool)  # points of taper lines found: refitted without them (they bend the edge)
     for it in range(3):
         k_pt, t_pt, inside, s_pt = _stations(frame, xyz[:, :2])
-        fit = _fit_boundaries(k_pt, t_pt, label, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)))
-        root = _continuations(fit.t, int(round(cfg.line_join_gap_m / step)), cfg.same_line_tolerance_m,
-                              int(round(10.0 / step)))
-        if np.any(root != np.arange(n_sl)):
-            label = np.where(label >= 0, root[np.maximum(label, 0)], -1)
-            superline = root[superline]
-            fit = _fit_boundaries(k_pt, t_pt, label, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)))
-        crossing = _crossing_points(fit.t, label, k_pt, t_pt, cfg.assign_distance_m)
-        short = np.isfinite(fit.t).sum(axis=1) * step < cfg.min_section_length_m
-        n_short = int(np.sum(short & np.isfinite(fit.t).any(axis=1)))
-        fit.t[short] = np.nan
         t_ego = _ego_offsets(frame, ego)
-        active = np.flatnonzero(np.isfinite(fit.t).any(axis=1))
-        solid = np.array(
-            [_mark_pattern(s_pt[(label == b) & inside], cfg)[0] == "solid" for b in active], dtype=bool
-        )
-        seen = _observed(k_pt[inside], t_pt[inside], ~crossing[inside], len(frame.s))
-        sub = _lane_structure(fit.t[active], fit.support[active], solid, t_ego, step, w_lane, cfg, seen)
-        structure = _Structure(np.zeros(fit.t.shape, dtype=bool), np.full(fit.t.shape, np.nan))
-        structure.on[active], structure.t[active] = sub.on, sub.t
-        if not np.any(structure.on.sum(axis=0) >= 2):
-            raise InputError(where, "no stretch of road has two marking lines a lane apart")
+        for _ in range(3):
+            use = np.where(off, -1, label)
+            fit = _fit_boundaries(k_pt, t_pt, use, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)))
+            root = _continuations(fit.t, int(round(cfg.line_join_gap_m / step)), cfg.same_line_tolerance_m,
+                                  int(round(10.0 / step)))
+            if np.any(root != np.arange(n_sl)):
+                label = np.where(label >= 0, root[np.maximum(label, 0)], -1)
+                use = np.where(off, -1, label)
+                superline = root[superline]
+                fit = _fit_boundaries(k_pt, t_pt, use, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)))
+            crossing = _crossing_points(fit.t, use, k_pt, t_pt, cfg.assign_distance_m)
+            short = np.isfinite(fit.t).sum(axis=1) * step < cfg.min_section_length_m
+            n_short = int(np.sum(short & np.isfinite(fit.t).any(axis=1)))
+            fit.t[short] = np.nan
+            active = np.flatnonzero(np.isfinite(fit.t).any(axis=1))
+            solid = np.array(
+                [_mark_pattern(s_pt[(use == b) & inside], cfg)[0] == "solid" for b in active], dtype=bool
+            )
+            seen = _observed(k_pt[inside], t_pt[inside], ~crossing[inside], len(frame.s))
+            sub = _lane_structure(fit.t[active], fit.support[active], solid, t_ego, step, w_lane, cfg, seen)
+            structure = _Structure(np.zeros(fit.t.shape, dtype=bool), np.full(fit.t.shape, np.nan))
+            structure.on[active], structure.t[active] = sub.on, sub.t
+            if not np.any(structure.on.sum(axis=0) >= 2):
+                raise InputError(where, "no stretch of road has two marking lines a lane apart")
+            tapers, taper_notes = _taper_lanes(_Points(k_pt, t_pt, s_pt, inside, use, xyz[:, 2]), structure,
+                                               -travel, step, cfg)
+            found = np.zeros(len(label), dtype=bool)
+            for taper in tapers:
+                found[taper.points] = True
+            if not np.any(found & ~off):
+                break
+            off |= found
+            # the edge bent towards a taper's line had left its own paint unlabelled: label again
+            curves = _hold_ends(_labelling_curves(sub.t, fit.t[active], cfg.same_line_tolerance_m),
+                                int(round(100.0 / step)), cfg.same_line_tolerance_m)
+            nearest = _label_by_distance(k_pt, t_pt, inside, curves, cfg)
+            label = np.where(nearest >= 0, active[np.maximum(nearest, 0)], -1)
         curves = _labelling_curves(sub.t, fit.t[active], cfg.same_line_tolerance_m)
         curves = _hold_ends(curves, int(round(100.0 / step)), cfg.same_line_tolerance_m)
         nearest = _label_by_distance(k_pt, t_pt, inside, curves, cfg)
@@ -1166,13 +1461,16 @@ def build_lane_model(
             f"ignored {n_short} marking pieces shorter than {cfg.min_section_length_m:g} m "
             "(stray returns, blobs, arrows)"
         )
-    pts = _Points(k_pt, t_pt, s_pt, inside, label, xyz[:, 2])
-    model = _assemble(cloud, pieces, superline, frame, fit, structure, pts, warnings, cfg)
+    pts = _Points(k_pt, t_pt, s_pt, inside, np.where(off, -1, label), xyz[:, 2])
+    _add_tapers(fit, structure, pts.label, tapers)
+    warnings.extend(taper_notes)
+    model, new_id = _assemble(cloud, pieces, superline, frame, fit, structure, pts, warnings, cfg)
     solid_rows = np.zeros(len(fit.t), dtype=bool)
     solid_rows[active] = solid
     first = int(np.argmin(np.linalg.norm(frame.xy - model.reference[0, :2], axis=1)))
     divided = _divided_left(fit.t, structure.on, solid_rows)[first : first + len(model.s)]
     _mark_dividers(model, _ego_track(frame, ego, model), cfg, divided)
+    _type_tapers(model, tapers, new_id, travel)
     counts = [len(sec.boundary_ids) - 1 for sec in model.sections]
     if len(set(counts)) > 1:
         model.warnings.append(
@@ -1716,8 +2014,10 @@ def _assemble(
     pts: _Points,
     warnings: list[str],
     cfg: LanesConfig,
-) -> LaneModel:
-    """Trim to the measured road, number boundaries left to right, classify them, write the model."""
+) -> tuple[LaneModel, np.ndarray]:
+    """Trim to the measured road, number boundaries left to right, classify them, write the model.
+
+    Also returns the boundary id of every row (-1 for rows not used)."""
     label, k_pt, t_pt, inside, s_pt = pts.label, pts.k, pts.t, pts.inside, pts.s
     step = frame.s[1] - frame.s[0]
     on, t = structure.on, structure.t
@@ -1759,7 +2059,7 @@ def _assemble(
     for i, c in enumerate(candidates):
         c.superline = int(new_id[superline[i]]) if superline[i] < len(new_id) else -1
     warnings.extend(_unused_notes(fit.t[:, a:b], on_new, ordered, s))
-    return LaneModel(
+    model = LaneModel(
         s=s,
         reference=reference,
         boundaries=boundaries,
@@ -1768,6 +2068,7 @@ def _assemble(
         origin=cloud.origin,
         warnings=warnings,
     )
+    return model, new_id
 
 
 def _unused_notes(t_fit: np.ndarray, on: np.ndarray, ordered: np.ndarray, s: np.ndarray) -> list[str]:
@@ -1809,8 +2110,9 @@ def _num(a: np.ndarray) -> list:
 def save_lanes(model: LaneModel, path: str | Path, network: dict | None = None) -> None:
     """Write the lane model as JSON (format `lidar2xodr.lanes/1`, NaN written as null), atomically.
 
-    Each section carries `divider_id` (null: one direction); files written before it existed load
-    with no divider. `network` (from `branches.save_network`) adds the roads and junction links of a
+    Each section carries `divider_id` (null: one direction) and `lane_types` (one of `LANE_TYPES` per
+    lane, left to right; null: every lane driving); files written before them load with no divider
+    and driving lanes. `network` (from `branches.save_network`) adds the roads and junction links of a
     carriageway that splits or merges; readers of the single road ignore it."""
     data = model_dict(model)
     if network is not None:
@@ -1841,6 +2143,7 @@ def model_dict(model: LaneModel) -> dict:
                 "s_end": sec.s_end,
                 "boundary_ids": list(sec.boundary_ids),
                 "divider_id": sec.divider_id,
+                "lane_types": None if sec.lane_types is None else list(sec.lane_types),
             }
             for sec in model.sections
         ],
@@ -1884,6 +2187,15 @@ def _arr(value: object, shape_tail: tuple[int, ...], where: str, name: str) -> n
             else f"{name} has shape {arr.shape}, expected (n,)",
         )
     return arr
+
+
+def _lane_types(value: object, n_lanes: int, where: str) -> list[str] | None:
+    """A section's lane types as read (absent or null: every lane driving, as files written before them)."""
+    if value is None:
+        return None
+    if not isinstance(value, list) or len(value) != n_lanes or not all(v in LANE_TYPES for v in value):
+        raise InputError(where, f"lane_types {value!r} is not a list of {n_lanes} of {', '.join(LANE_TYPES)}")
+    return [str(v) for v in value]
 
 
 def load_lanes(path: str | Path) -> LaneModel:
@@ -1947,6 +2259,7 @@ def model_from(data: dict, path: str | Path) -> LaneModel:
                     float(sec["s_end"]),
                     [int(i) for i in sec["boundary_ids"]],
                     None if divider is None else int(divider),
+                    _lane_types(sec.get("lane_types"), len(sec["boundary_ids"]) - 1, f"{path} section {j}"),
                 )
             )
         candidates = []
