@@ -88,14 +88,6 @@ class ExtractionConfig(_Section):
                               "ground plane, each twice as wide as the one before; 0 = one plane per scan (paper)")
     ground_ring_window_m: float = Field(0.5, description="ours: a ring's plane is refitted from its points this "
                                         "close to the plane of the ring before")
-    ground_ring_cell_m: float = Field(1.0, gt=0, description="ours: a ring's plane is refitted on one point per "
-                                      "xy cell of this size, so a vehicle's rear (many points stacked in few cells) "
-                                      "weighs like a few square metres of road")
-    ground_ring_scale_m: float = Field(0.15, gt=0, description="ours: final cut-off of the ring refit's Tukey "
-                                       "biweight (halved from ground_ring_window_m down to this): points farther "
-                                       "from the plane have no weight (the road band's 0.15 m)")
-    ground_ring_min_cells: int = Field(20, ge=3, description="ours: a ring refit that rests on fewer cells within "
-                                       "ground_ring_scale_m keeps the plane of the ring before")
     workers: int | Literal["auto"] = Field(
         "auto", description="ours: processes reading and filtering scans in parallel (same bytes as 1); "
         "auto = the CPUs this process may use, at most 8")

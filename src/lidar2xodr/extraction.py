@@ -15,9 +15,7 @@ Decisions beyond the paper:
   `ground_prior_m` of the vehicle's road level, and planes passing farther from the vehicle
   origin rejected (the origin is on the road). Beyond `ransac_range_m`, `ground_rings` range
   rings get planes of their own (`ground_heights`): one plane to 200 m lost far paint on crests
-  and let far embankments in. A ring's plane is a robust refit (`_ring_plane`: one point per
-  cell, graduated Tukey weights): far away vehicles and guard rails outnumber the dark road.
-  A scan where no plane is found falls back to z = 0 (counted).
+  and let far embankments in. A scan where no plane is found falls back to z = 0 (counted).
 - Paint (`auto_threshold`, `auto_method`): 'local' (default) judges every bright point against
   the road surface around it (`local_paint_mask`): a robust outlier in intensity, on a flat
   surface. Intensity falling with range, lasers calibrated differently, and bright, rough verges
@@ -30,8 +28,7 @@ Decisions beyond the paper:
 - Moving objects (`moving_object_mask`): a bright vehicle driving with the ego left a false lane
   line on simple_highway (380 points 0.14-0.42 m above the road, from 33 scans: 70 m ahead the
   40-80 m ring plane was refitted on 120 points of which 41 were the car's rear, which raised
-  the ground 0.3 m there; dark asphalt returns little that far; the robust ring refit now
-  removes that cause, the filter stays for what is left). Paint is re-observed as the
+  the ground 0.3 m there; dark asphalt returns little that far). Paint is re-observed as the
   sensor approaches; a vehicle's trail is seen once per spot and advances with time: transient
   points that move like one object over 3+ scans are tracked and removed, thin trails along a
   line (a spinning sensor's ring sliding along it) stay. 0.1-0.3 s per million points.
@@ -643,20 +640,18 @@ def _fill(members: np.ndarray, xy: np.ndarray, t: np.ndarray, owner: np.ndarray,
         owner[window[_gated(xy[window], t[window], model, cfg, quantum)]] = label
 
 
-_RING_ITERATIONS = 6
-_RING_TOL_M = 0.01
-
-
 def ground_heights(
     pts: np.ndarray, r: np.ndarray, plane: tuple[np.ndarray, float], cfg: ExtractionConfig
 ) -> np.ndarray:
     """Height of every point above the local ground: piecewise planes over range rings.
 
     Within `ransac_range_m` the scan's plane. Beyond it `ground_rings` rings, each twice as wide as
-    the one before (40-80 m, 80-160 m, 160 m and more with the defaults), get their own plane
-    (`_ring_plane`), refitted from the ring's points within `ground_ring_window_m` of the plane
-    before it; a refit that fails keeps that plane. One plane to 200 m misses crests, sags and
-    banked curves by decimetres, so far paint fell out of the road band and far embankments fell in.
+    the one before (40-80 m, 80-160 m, 160 m and more with the defaults), get their own plane: a
+    least-squares refit, twice, of the ring's points within `ransac_distance_m` of the plane
+    before it, starting from the points within `ground_ring_window_m` of it; a refit that tilts by
+    more than `ransac_max_tilt_deg` from the plane before it, or rests on fewer than 30 points,
+    keeps that plane. One plane to 200 m misses crests, sags and banked curves by decimetres, so
+    far paint fell out of the road band and far embankments fell in.
     """
     n, d = plane
     h = pts @ n + d
@@ -672,78 +667,20 @@ def ground_heights(
             break
         ring = beyond if k == cfg.ground_rings - 1 else beyond & (fr < 2.0 * lo)
         q = np.compress(ring & (np.abs(fh) < cfg.ground_ring_window_m), fp, axis=0)
-        if len(q) >= cfg.ground_ring_min_cells:
-            refit = _ring_plane(q.take(cell_samples(q, cfg.ground_ring_cell_m), axis=0), n, d, cfg, cos_tilt)
-            if refit is not None:
-                n, d = refit
+        tol = cfg.ground_ring_window_m
+        for _ in range(2):
+            inl = np.compress(np.abs(q @ n + d) < tol, q, axis=0)
+            if len(inl) < 30:
+                break
+            c, cand = _plane_fit(inl)
+            if cand @ n < cos_tilt:
+                break
+            n, d = cand, float(-cand @ c)
+            tol = cfg.ransac_distance_m
         fh[beyond] = np.compress(beyond, fp, axis=0) @ n + d
         lo *= 2.0
     h[far] = fh
     return h
-
-
-def _ring_plane(q: np.ndarray, n: np.ndarray, d: float, cfg: ExtractionConfig, cos_tilt: float
-                ) -> tuple[np.ndarray, float] | None:
-    """Robust plane of a ring's density-capped points `q` (one per `ground_ring_cell_m` cell), from the
-    plane (n, d) of the ring before; None keeps that plane.
-
-    Why robust: far from the sensor dark asphalt returns little, and what is left in the window is
-    mostly not road. On a simulated simple_highway drive (2 km, seed 3) the 40-80 m ring's window
-    held 117 points per scan (median), 31 % of them road; the rest were vehicles' rears and guard
-    rails. The former least-squares refit (all points in the window, then those within
-    `ransac_distance_m`) followed them: the ring plane stood 0.13 m (median over scans; 0.24 m at
-    the 95th percentile) off the road, and a car's rear 70 m ahead lifted it 0.3 m, so its low,
-    bright parts (plate, lights) passed the road band and the paint test: false lane lines.
-
-    How: (1) one point per xy cell (`cell_samples`: unbiased, O(n)), so a vehicle's rear or a rail,
-    many points stacked in few cells, weighs like a few square metres of road; (2) iteratively
-    reweighted least squares with Tukey's biweight, its cut-off halved from `ground_ring_window_m`
-    down to `ground_ring_scale_m` (graduated: the wide first scale lets a crest or sag pull the
-    plane along as the former refit did; the final one gives objects no weight at all); (3) the
-    refit is kept only with at least `ground_ring_min_cells` cells within the final cut-off (a
-    rear alone never has them) and a tilt below `ransac_max_tilt_deg` from the plane before.
-
-    Measured against the simulator's truth (every 2nd/3rd scan; ring plane height error over scans,
-    median / 95th percentile, 40-80 m): simple_highway seed 3 0.127 / 0.235 m -> 0.007 / 0.022 m,
-    road points beyond 40 m outside the band 3176 -> 66-83 of 16718, points 0.2-2 m above the
-    road inside it 19419 -> ~1000; AB_RQ31_Crest 0.020 / 0.077 -> 0.008 / 0.023 m; curves_elevation
-    0.025 / 0.178 -> 0.021 / 0.053 m (road outside the band 2.5 % -> 2.7 %: its 430 m vertical
-    radii bend the road more than a plane per ring can follow). Marking points inside the true
-    vehicle boxes (seed 3, moving filter off / on): 503 -> 141 / 136 -> 46; the rest are bodies'
-    lowest 0.1-0.2 m, inside the paper's 0.15 m band. Costs 0.14 ms per scan (0.13 -> 0.27 ms).
-    Rejected: Tukey at 0.15 m without graduation (kept the plane before on 1500 m crests and sags);
-    the lowest point per cell (1-2 cm low on dense ground, no better on the drive); a soft hinge
-    to the plane before at the ring's edge (no gain). Limits: the fit follows the larger part of
-    a ring that is not planar; beside raised flat embankments on a crest it follows neither side
-    well (synthetic: 60 % of the far road in the band, the former 75 %); on the aiMotive sample
-    the far left edge line lies 0.10-0.17 m above the plane through the right lanes.
-    """
-    nn, dd = n, d
-    res = q @ n + d
-    scale = cfg.ground_ring_window_m
-    for _ in range(_RING_ITERATIONS):
-        w = res * (1.0 / scale)
-        w *= w
-        np.subtract(1.0, w, out=w)
-        np.maximum(w, 0.0, out=w)
-        w *= w
-        sw = float(w.sum())
-        if np.count_nonzero(w) < 3:
-            return None
-        c = w @ q / sw
-        _, vec = np.linalg.eigh((q.T * w) @ q / sw - np.outer(c, c))
-        cand = vec[:, 0] if vec[2, 0] >= 0 else -vec[:, 0]
-        if cand @ n < cos_tilt:
-            return None
-        nn, dd = cand, float(-cand @ c)
-        new = q @ nn + dd
-        moved = float(np.abs(new - res).max())
-        res = new
-        if scale <= cfg.ground_ring_scale_m and moved < _RING_TOL_M:
-            break
-        scale = max(0.5 * scale, cfg.ground_ring_scale_m)
-    support = np.count_nonzero(np.abs(res) < cfg.ground_ring_scale_m)
-    return (nn, dd) if support >= cfg.ground_ring_min_cells else None
 
 
 _CELL_BITS = 16
