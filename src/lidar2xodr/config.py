@@ -255,7 +255,7 @@ class ExportConfig(_Section):
     right_shoulder_m: float = Field(0.0, description="ours: width of a 'shoulder' lane outside the right edge "
                                     "line; 0 = none (not measured, so off by default)")
     left_border_m: float = Field(0.0, description="ours: width of a 'border' lane left of the leftmost line; 0 = none")
-    elevation_record_m: float | None = Field(25.0, ge=5.0, description="ours: length of the elevation cubic records "
+    elevation_record_m: float | None = Field(None, ge=5.0, description="ours: length of the elevation cubic records "
                                              "(C2 spline); None = the paper's one cubic per planView piece, which "
                                              "misses vertical curves shorter than a piece")
     superelevation_median_scans: int = Field(9, description="ours: running median over the per-scan roll angles")
