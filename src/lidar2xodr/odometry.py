@@ -106,6 +106,9 @@ _PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 _NEIGHBOURS = np.array([(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1)], dtype=np.int64)
 GROUND_SCALES = (8.0, 4.0, 2.0, 1.0, 1.0, 1.0, 1.0)
 GROUND_MIN_POINTS = 3.0
+GROUND_ROUNDS = 4
+GROUND_DONE_M = 1e-4
+GROUND_DONE_RAD = 1e-6
 
 
 def _cell_ij(xy: np.ndarray, size: float) -> np.ndarray:
@@ -250,9 +253,12 @@ def split_scan(xyz: np.ndarray, times: np.ndarray | None, cfg: ExtractionConfig,
     The scan's own RANSAC ground plane (the extraction's, `fit_ground_plane`): structure is
     higher than `odometry_structure_height_m` above it, road within `odometry_ground_band_m` of it
     and `odometry_ground_range_m` of the vehicle. No plane: z = 0 (the vehicle frame sits on the road).
+    With `odometry_min_height_m` >= 0 the extraction kept no road: all points are structure.
     """
     from lidar2xodr.extraction import fit_ground_plane
 
+    if cfg.odometry_min_height_m >= 0.0:
+        return xyz, times, xyz[:0], None if times is None else times[:0]
     r = np.hypot(xyz[:, 0], xyz[:, 1])
     plane = fit_ground_plane(xyz[r < cfg.ransac_range_m], cfg, rng, cfg.ground_prior_m)
     n, d = plane if plane is not None else (np.array([0.0, 0.0, 1.0]), 0.0)
@@ -399,13 +405,18 @@ class LidarOdometry:
         if len(road):
             q = deskew(road, None if road_times is None else road_times - stamp, self._planar_twist())
             world_road = q @ pose[:3, :3].T + pose[:3, 3]
-            if len(self.ground_map):
+            fixed = False
+            for _ in range(GROUND_ROUNDS if len(self.ground_map) else 0):
                 fix = ground_correction(world_road, pose, self.ground_map, self.cfg.odometry_ground_scale_m,
                                         self.cfg.odometry_ground_min_cells)
-                if fix is not None:
-                    pose = pose @ se3_exp(np.array([0.0, 0.0, fix[0], fix[1], fix[2], 0.0]))
-                    world_road = q @ pose[:3, :3].T + pose[:3, 3]
-                    self.ground_fixes += 1
+                if fix is None:
+                    break
+                pose = pose @ se3_exp(np.array([0.0, 0.0, fix[0], fix[1], fix[2], 0.0]))
+                world_road = q @ pose[:3, :3].T + pose[:3, 3]
+                fixed = True
+                if abs(fix[0]) < GROUND_DONE_M and np.hypot(fix[1], fix[2]) < GROUND_DONE_RAD:
+                    break
+            self.ground_fixes += int(fixed)
         if world_road is not None:
             self.ground_map.update(world_road)
             self.ground_map.prune(pose[:3, 3], 2.0 * self.cfg.odometry_ground_range_m)
