@@ -188,8 +188,9 @@ def test_old_lanes_json_loads_driving_and_bad_types_are_rejected(
 @pytest.mark.slow
 def test_aimotive_sample_has_two_through_lanes_and_the_entry_lane(shared_data: Path) -> None:
     """Real drive (extraction ~20 s). The camera frames show the ego in the left of two lanes; right of
-    the short-dash line an acceleration lane whose solid edge converges onto that line (frame 65, x ~ 44 m)
-    and is gone by frame 92 (x ~ 98 m). LiDAR sees the edge from about s 44 m; it meets near s 79 m."""
+    the short-dash line an acceleration lane whose solid edge converges onto that line (frame 65, ego at
+    x ~ 44 m) and is gone by frame 92 (x ~ 98 m). LiDAR sees that edge from x ~ 44 m; it meets the
+    short-dash line near x ~ 79 m."""
     from test_extraction import aimotive_cloud
 
     cloud, _ = aimotive_cloud(shared_data / "lidar" / "aimotive_highway_sample")
@@ -198,7 +199,8 @@ def test_aimotive_sample_has_two_through_lanes_and_the_entry_lane(shared_data: P
     assert counts == [2, 3, 2]
     taper = model.sections[1]
     assert taper.lane_types == ["driving", "driving", "entry"]
-    assert 35.0 <= taper.s_start <= 55.0 and 70.0 <= taper.s_end <= 90.0
+    x = np.asarray(model.reference)[:, 0]  # the drive's frame: x = 0 at the first scan, along the drive
+    assert 35.0 <= np.interp(taper.s_start, model.s, x) <= 55.0 and 70.0 <= np.interp(taper.s_end, model.s, x) <= 90.0
     t = {b.id: b.t for b in model.boundaries}
     for sec in model.sections:
         k = (model.s >= sec.s_start) & (model.s < sec.s_end)
