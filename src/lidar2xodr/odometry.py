@@ -225,39 +225,48 @@ class GroundMap:
         return ok, centroid, normal
 
 
-def ground_correction(world: np.ndarray, pose: np.ndarray, gmap: GroundMap, scale_m: float,
-                      min_cells: int) -> np.ndarray | None:
-    """(dz, roll, pitch) in the vehicle frame that best move a scan's road onto the mapped road.
+def fit_to_road(road: np.ndarray, pose: np.ndarray, gmap: GroundMap, scale_m: float,
+                min_cells: int) -> np.ndarray | None:
+    """`pose` with its height, roll and pitch (vehicle frame) moved so that the scan's road lies on the mapped road.
 
-    `world`: the scan's road points in the world frame at `pose`. One point-to-plane residual per
-    map cell the scan and the map share (the mean over its points: area, not point density,
-    weighs); its lever arm is the map cell's centroid (the scan's own points in a cell are fewer
-    and noisier). Tukey biweight, the cut-off narrowing from 8 x `scale_m`
-    to `scale_m` (vehicles, kerbs, slopes new to the map). None when fewer than `min_cells`
-    cells are shared.
+    `road`: the scan's road points in the vehicle frame, deskewed. The cells (and the map's planes)
+    are those the road falls in at `pose`; one point-to-plane residual per cell the scan and the map
+    share (the mean over its points: area, not point density, weighs), its lever arm the map
+    cell's centroid (the scan's own points in a cell are fewer and noisier). Tukey biweight, the
+    cut-off narrowing from 8 x `scale_m` to `scale_m` (vehicles, kerbs, slopes new to the map).
+    The linear step is repeated until it moves the pose less than 0.1 mm and 1 urad (at most
+    `GROUND_ROUNDS` times). None when fewer than `min_cells` cells are shared.
     """
+    world = road @ pose[:3, :3].T + pose[:3, 3]
     ij = _cell_ij(world[:, :2], gmap.cell_m)
     uk, first, inv = np.unique(_keys(ij), return_index=True, return_inverse=True)
     ok, centroid, normal = gmap.planes(ij[first])
     if ok.sum() < min_cells:
         return None
-    cnt = np.bincount(inv, minlength=len(uk)).astype(np.float64)
-    mean = np.column_stack([np.bincount(inv, weights=world[:, j], minlength=len(uk)) for j in range(3)])
-    mean /= cnt[:, None]
-    res = np.einsum("ij,ij->i", normal[ok], centroid[ok] - mean[ok])
-    rot = pose[:3, :3]
-    n = normal[ok] @ rot
-    arm = np.cross((centroid[ok] - pose[:3, 3]) @ rot, n)
-    A = np.column_stack([n[:, 2], arm[:, 0], arm[:, 1]])
-    x = np.zeros(3)
-    for k in GROUND_SCALES:
-        u = (res - A @ x) / (k * scale_m)
-        w = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
-        if np.count_nonzero(w) < min_cells:
-            return None
-        Aw = A * w[:, None]
-        x = np.linalg.lstsq(Aw.T @ A, Aw.T @ res, rcond=None)[0]
-    return x
+    cell = (np.cumsum(ok) - 1)[inv]
+    sel = ok[inv]
+    cnt = np.bincount(cell[sel], minlength=int(ok.sum())).astype(np.float64)
+    local = np.column_stack([np.bincount(cell[sel], weights=road[sel, j], minlength=len(cnt)) for j in range(3)])
+    local /= cnt[:, None]
+    centroid, normal = centroid[ok], normal[ok]
+    for _ in range(GROUND_ROUNDS):
+        rot, pos = pose[:3, :3], pose[:3, 3]
+        res = np.einsum("ij,ij->i", normal, centroid - (local @ rot.T + pos))
+        n = normal @ rot
+        arm = np.cross((centroid - pos) @ rot, n)
+        A = np.column_stack([n[:, 2], arm[:, 0], arm[:, 1]])
+        x = np.zeros(3)
+        for k in GROUND_SCALES:
+            u = (res - A @ x) / (k * scale_m)
+            w = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
+            if np.count_nonzero(w) < min_cells:
+                return None
+            Aw = A * w[:, None]
+            x = np.linalg.lstsq(Aw.T @ A, Aw.T @ res, rcond=None)[0]
+        pose = pose @ se3_exp(np.array([0.0, 0.0, x[0], x[1], x[2], 0.0]))
+        if abs(x[0]) < GROUND_DONE_M and np.hypot(x[1], x[2]) < GROUND_DONE_RAD:
+            break
+    return pose
 
 
 def split_scan(xyz: np.ndarray, times: np.ndarray | None, cfg: ExtractionConfig, rng: np.random.Generator
@@ -415,24 +424,14 @@ class LidarOdometry:
                     self._twist = se3_log(np.linalg.inv(prev) @ pose) / gap
                 guess = pose
             self._threshold.update_model_deviation(np.linalg.inv(initial) @ pose)
-        world_road = None
         if len(road):
             q = deskew(road, None if road_times is None else road_times - stamp, self._planar_twist())
-            world_road = q @ pose[:3, :3].T + pose[:3, 3]
-            fixed = False
-            for _ in range(GROUND_ROUNDS if len(self.ground_map) else 0):
-                fix = ground_correction(world_road, pose, self.ground_map, self.cfg.odometry_ground_scale_m,
-                                        self.cfg.odometry_ground_min_cells)
-                if fix is None:
-                    break
-                pose = pose @ se3_exp(np.array([0.0, 0.0, fix[0], fix[1], fix[2], 0.0]))
-                world_road = q @ pose[:3, :3].T + pose[:3, 3]
-                fixed = True
-                if abs(fix[0]) < GROUND_DONE_M and np.hypot(fix[1], fix[2]) < GROUND_DONE_RAD:
-                    break
-            self.ground_fixes += int(fixed)
-        if world_road is not None:
-            self.ground_map.update(world_road)
+            fitted = fit_to_road(q, pose, self.ground_map, self.cfg.odometry_ground_scale_m,
+                                 self.cfg.odometry_ground_min_cells) if len(self.ground_map) else None
+            if fitted is not None:
+                pose = fitted
+                self.ground_fixes += 1
+            self.ground_map.update(q @ pose[:3, :3].T + pose[:3, 3])
             self.ground_map.prune(pose[:3, 3], 2.0 * self.cfg.odometry_ground_range_m)
         self._map.update(down, pose)
         self.stamps.append(stamp)
