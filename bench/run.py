@@ -260,16 +260,23 @@ def main() -> None:
     (args.out / "results.json").write_text(json.dumps(results, indent=2, default=str))
     cols = ["map", "boundaries_rmse", "centerline_rmse", "lane_count", "width_bias", "width_std", "coverage",
             "eval_length_m", "elevation_rmse", "elevation_mean", "meets_targets", "meets_issue5", "error"]
-    print("\n| " + " | ".join(cols) + " |\n|" + "---|" * len(cols))
-    for r in rows:
-        print("| " + " | ".join(_fmt(r.get(c, "")) for c in cols) + " |")
+    print_table(rows, cols)
     checked = rows + ([results["aimotive"]] if "map" in results["aimotive"] else [])
     cols = ["map", "asam_errors", "asam_warnings", "leap_m", "kink_rad", "junction_gap_m", "sumo_warnings",
             "sumo_errors", "pyxodr_ok", "check_error"]
+    print_table(checked, cols)
+    print_reader_messages(checked)
+
+
+def print_table(rows: list[dict], cols: list[str]) -> None:
+    """Rows as a Markdown table (pasted into BENCHMARKS.md)."""
     print("\n| " + " | ".join(cols) + " |\n|" + "---|" * len(cols))
-    for r in checked:
+    for r in rows:
         print("| " + " | ".join(_fmt(r.get(c, "")) for c in cols) + " |")
-    for r in checked:
+
+
+def print_reader_messages(rows: list[dict]) -> None:
+    for r in rows:
         for line in r.get("sumo_messages", []) + r.get("pyxodr_messages", []):
             print(f"  {r['map']}: {line}")
 

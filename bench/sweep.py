@@ -18,7 +18,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from run import SHARED, _fmt, bench_map  # noqa: E402
+from run import SHARED, bench_map, print_reader_messages, print_table  # noqa: E402
 
 
 def main() -> None:
@@ -42,13 +42,8 @@ def main() -> None:
     (args.out / "sweep.json").write_text(json.dumps({"command": " ".join(sys.argv), "rows": rows}, indent=2))
     cols = ["folder", "map", "asam_errors", "asam_warnings", "leap_m", "kink_rad", "sumo_warnings", "sumo_errors",
             "pyxodr_ok", "boundaries_rmse", "centerline_rmse", "lane_count", "elevation_rmse", "error"]
-    print("\n| " + " | ".join(cols) + " |\n|" + "---|" * len(cols))
-    for r in rows:
-        print("| " + " | ".join(_fmt(r.get(c, "")) for c in cols) + " |")
-    for r in rows:
-        for line in r.get("sumo_messages", []) + r.get("pyxodr_messages", []):
-            print(f"  {r['map']}: {line}")
-
+    print_table(rows, cols)
+    print_reader_messages(rows)
 
 if __name__ == "__main__":
     main()

@@ -77,19 +77,26 @@ def _place(model: LaneModel, xy: np.ndarray, heading: np.ndarray, step_m: np.nda
 
 
 def lane_traffic(model: LaneModel, tracks: list, ego: Trajectory | None, min_speed: float) -> LaneTraffic:
-    """Metres of traffic along and against s in every lane of every section (tracks: lidar2xodr.tracks.Track)."""
+    """Metres of traffic along and against s in every lane of every section (tracks: lidar2xodr.tracks.Track).
+
+    All samples (tracks and ego) are placed in one pass, so the road's frame is built once.
+    """
     counts = LaneTraffic([np.zeros(len(s.boundary_ids) - 1) for s in model.sections],
                          [np.zeros(len(s.boundary_ids) - 1) for s in model.sections])
+    xy, hdg, step = [np.zeros((0, 2))], [np.zeros(0)], [np.zeros(0)]
     for tr in tracks:
         if len(tr.times) < 2:
             continue
-        step = np.abs(np.gradient(tr.times)) * tr.speed
         ok = tr.speed >= min_speed
-        _place(model, tr.xyz[ok, :2], tr.yaw[ok], step[ok], counts)
+        xy.append(tr.xyz[ok, :2])
+        hdg.append(tr.yaw[ok])
+        step.append((np.abs(np.gradient(tr.times)) * tr.speed)[ok])
     if ego is not None and len(ego.times) > 1:
-        xy = ego.positions[:, :2]
-        seg = np.gradient(xy, axis=0)
-        _place(model, xy, np.arctan2(seg[:, 1], seg[:, 0]), np.hypot(seg[:, 0], seg[:, 1]), counts)
+        seg = np.gradient(ego.positions[:, :2], axis=0)
+        xy.append(ego.positions[:, :2])
+        hdg.append(np.arctan2(seg[:, 1], seg[:, 0]))
+        step.append(np.hypot(seg[:, 0], seg[:, 1]))
+    _place(model, np.concatenate(xy), np.concatenate(hdg), np.concatenate(step), counts)
     return counts
 
 

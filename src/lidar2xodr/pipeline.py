@@ -75,6 +75,7 @@ class BuildPipeline:
         self.reference = reference
         self.console = console or Console(stderr=True)
         self.timings: dict[str, float] = {}
+        self._tracks: Any = None  # the drive's object tracks, loaded once for lane directions and the scenario
 
     @contextmanager
     def _stage(self, name: str) -> Iterator[None]:
@@ -116,12 +117,12 @@ class BuildPipeline:
         if not self.config.lanes.traffic_directions:
             return []
         try:
-            tracks = load_tracks(self.drive, cloud.trajectory, cfg=self.config)
+            self._tracks = load_tracks(self.drive, cloud.trajectory, cfg=self.config)
         except InputError as exc:
             if exc.problem.startswith(("no object tracks found", "unknown track format")):
                 return []
             return [f"the object list was not used for lane directions: {exc}"]
-        return apply_traffic_directions(model, tracks.tracks, cloud.trajectory, self.config.lanes)
+        return apply_traffic_directions(model, self._tracks.tracks, cloud.trajectory, self.config.lanes)
 
     def run(self) -> BuildResult:
         cloud = self.extract()
@@ -178,7 +179,7 @@ class BuildPipeline:
         from lidar2xodr.tracks import load_tracks
 
         assert self.scenario is not None
-        tracks = load_tracks(self.drive, cloud.trajectory)
+        tracks = self._tracks if self._tracks is not None else load_tracks(self.drive, cloud.trajectory)
         summary = export_scenario(cloud.trajectory, tracks, self.out, self.scenario, self.config)
         return {"path": self.scenario, "summary": summary, "tracks": tracks, "ego": cloud.trajectory}
 
