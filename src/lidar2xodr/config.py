@@ -266,9 +266,12 @@ class ExportConfig(_Section):
     junction_type: Literal["default", "direct"] = Field(
         "default", description="ours: 'default' = classic junction with connecting roads (read by every reader, "
         "SUMO 1.15 included); 'direct' = OpenDRIVE 1.7+ direct junction (no connecting roads)")
-    fold_appearing_lanes: bool = Field(True, description="ours: an outer lane that opens from width 0 stays in the "
-                                       "section before at width 0 instead of starting a section (SUMO warns about "
-                                       "an appearing lane it cannot connect; see export_sections.py)")
+    fold_appearing_lanes: bool = Field(False, description="ours, opt-in: an outer lane that opens from width 0 "
+                                       "stays in the section before at width 0 instead of starting a section. Off "
+                                       "by default: a lane exists where it has width (plus its taper); the fold "
+                                       "silences SUMO's 'not connected from any incoming edge' warning but CARLA "
+                                       "spawns vehicles on the zero-width lane and SUMO 1.28 makes it a 1.8 m lane "
+                                       "(see export_sections.py)")
     connecting_road_m: float = Field(20.0, description="ours: length of a connecting road cut from the road "
                                      "end at a classic junction (at most its end lane section and half the road)")
 
