@@ -1206,7 +1206,14 @@ def _add_tapers(fit: _Fit, structure: _Structure, label: np.ndarray, tapers: lis
 
 def _travel_sign(frame: Frame, ego: np.ndarray | None) -> int:
     """+1 when the ego first travels along s on the frame (the kept carriageway is the one it drove
-    first), -1 against; +1 without a trajectory (s runs away from the drive's start)."""
+    first), -1 against; +1 without a trajectory.
+
+    The stage turns a frame the ego first drives against, so s runs the way the drive went (the
+    paper's "away from the world origin" with the origin at the highway entry, i.e. the drive's
+    start): a one-way carriageway's lanes are right lanes along s. The frame's own orientation comes
+    from the markings and the local frame's origin, which can lie anywhere (a roadgen corridor
+    driven towards its origin was built as the opposite direction's road: 16 m boundaries RMSE).
+    """
     if ego is None or len(ego) < 2:
         return 1
     s, _, inside = frame.project(ego)
@@ -1448,6 +1455,8 @@ def build_lane_model(
     ego = cloud.trajectory.positions[:, :2] if len(cloud.trajectory) else None
     lam = _lam(cfg.boundary_smoothing_m, step)
     structure = fit = None
+    if _travel_sign(frame, ego) < 0:
+        frame = Frame(frame.xy[::-1], step)
     travel = _travel_sign(frame, ego)
     tapers: list[_Taper] = []
     taper_notes: list[str] = []
