@@ -205,3 +205,18 @@ def test_coverage_and_gaps(tmp_path: Path) -> None:
     touching = _write(tmp_path / "touch.xodr", _road("1", 150.0, lanes), _road("2", 150.0, lanes, x=150.0))
     graph = compare_maps(touching, ref, CFG)["lane_graph"]
     assert graph["breaks"] == 2 and graph["agreement"] < 0.6
+
+
+def test_a_zero_width_placeholder_is_no_part_of_the_taper_chain(tmp_path: Path) -> None:
+    """An outer lane kept at width 0 over the section before it opens (the exporter's
+    fold_appearing_lanes): the opening lane's taper starts where it opens, not 300 m earlier."""
+    def road(before: float) -> Path:
+        a = [_lane(-1, LANE, succ=-1), _lane(-2, before, succ=-2)]
+        b = [_lane(-1, LANE, pred=-1), _lane(-2, LANE, pred=-2)]
+        return _write(tmp_path / f"r{before}.xodr", _road("1", 600.0, [_section(0, a), _section(300, b)]))
+
+    for before, start in ((0.0, 0.0), (1.0, 60.0 + 1.0)):
+        g = build_lane_graph(OpenDriveMap.load(road(before)), DRIVING_TYPES)
+        start_d, _ = g.chain_distances(61.0)
+        assert start_d[g.index[("1", 1, -2)]] == pytest.approx(start)
+        assert start_d[g.index[("1", 1, -1)]] == pytest.approx(61.0)

@@ -58,6 +58,8 @@ _BORDER_EPS_M = 1e-6
 _MIN_CELL_AREA_M2 = 1e-6
 """Polygons of zero-width lanes hold nothing."""
 _MAX_BREAKS_LISTED = 20
+_GHOST_WIDTH_M = 0.01
+"""Narrower everywhere in its section: a zero-width placeholder lane, not a lane (chain_distances)."""
 _CHUNK = 20_000
 
 
@@ -79,6 +81,7 @@ class LaneGraph:
     succ: list[frozenset[int]]
     pred: list[frozenset[int]]
     length: np.ndarray  # (n,) lane section length
+    max_width: np.ndarray  # (n,) widest along the section (NaN-free; border-defined lanes read as wide)
     section: np.ndarray  # (n,) id of the node's (road, lane section)
     _reach: dict[int, frozenset[int]] = field(default_factory=dict, repr=False)
     _closure: dict[frozenset[int], frozenset[int]] = field(default_factory=dict, repr=False)
@@ -114,10 +117,14 @@ class LaneGraph:
 
     def chain_distances(self, cap: float) -> tuple[np.ndarray, np.ndarray]:
         """Distance from each node's travel start back to its lane chain's first end, and from its
-        travel end on to the chain's last end, capped at `cap` (cycles without an end read as cap)."""
+        travel end on to the chain's last end, capped at `cap` (cycles without an end read as cap).
+        A lane kept at zero width over a whole section (an exporter's placeholder before a lane
+        opens) is no part of the chain: the lane opening after it starts there."""
         n = len(self.keys)
+        ghost = self.max_width < _GHOST_WIDTH_M
         out = []
-        for links in (self.pred, self.succ):
+        for all_links in (self.pred, self.succ):
+            links = [[a for a in x if not ghost[a]] for x in all_links]
             src = np.array([a for b in range(n) for a in links[b]], dtype=int)
             dst = np.array([b for b in range(n) for _ in links[b]], dtype=int)
             d = np.where(np.array([len(x) == 0 for x in links], bool), 0.0, cap)
@@ -136,6 +143,7 @@ def build_lane_graph(odr: Any, driving: frozenset[str]) -> LaneGraph:
     """Nodes and travel successors of every driving lane of a map (rule 1)."""
     keys: list[NodeKey] = []
     lengths: list[float] = []
+    widths: list[float] = []
     along: list[bool] = []
     for rid, road in odr.roads.items():
         for k, ls in enumerate(road.lane_sections):
@@ -143,6 +151,8 @@ def build_lane_graph(odr: Any, driving: frozenset[str]) -> LaneGraph:
                 if lid != 0 and ls.lanes[lid].type.lower() in driving:
                     keys.append((rid, k, lid))
                     lengths.append(ls.s_end - ls.s)
+                    w = ls.lanes[lid].width(np.linspace(0.0, ls.s_end - ls.s, 21))
+                    widths.append(math.inf if np.isnan(w).any() else float(np.max(np.abs(w))))
                     along.append(travels_along_s(lid, road.rule))
     index = {key: i for i, key in enumerate(keys)}
     sec_ids: dict[tuple[str, int], int] = {}
@@ -198,7 +208,7 @@ def build_lane_graph(odr: Any, driving: frozenset[str]) -> LaneGraph:
                 succ_sets[i].add(j)
                 pred_sets[j].add(i)
     return LaneGraph(keys, index, [frozenset(s) for s in succ_sets], [frozenset(p) for p in pred_sets],
-                     np.asarray(lengths, float), section)
+                     np.asarray(lengths, float), np.asarray(widths, float), section)
 
 
 def _incoming_end(inc: Any, con: Any, c_port: int, jid: str) -> int:
