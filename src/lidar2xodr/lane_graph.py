@@ -273,7 +273,7 @@ def _cells(sections: list[Any], odr: Any, graph: LaneGraph, cfg: EvaluationConfi
     corners, node, hdg, full = (np.concatenate(c) for c in zip(*parts, strict=True))
     x, y = corners[..., 0], corners[..., 1]
     area = 0.5 * np.abs(np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1))
-    keep = area > _MIN_CELL_AREA_M2
+    keep = area > _MIN_CELL_AREA_M2  # shoelace area of the quadrilateral
     corners, node, hdg, full = corners[keep], node[keep], hdg[keep], full[keep]
     centre = corners.mean(axis=1)
     radius = np.max(np.hypot(*(corners - centre[:, None, :]).transpose(2, 0, 1)), axis=1)
@@ -281,12 +281,18 @@ def _cells(sections: list[Any], odr: Any, graph: LaneGraph, cfg: EvaluationConfi
 
 
 def _inside(corners: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Whether q (n, 2) lies in the convex quadrilaterals corners (n, k, 4, 2), borders included."""
-    edge = np.roll(corners, -1, axis=2) - corners
-    rel = q[:, None, None, :] - corners
-    cross = (edge[..., 0] * rel[..., 1] - edge[..., 1] * rel[..., 0]) / np.maximum(np.hypot(edge[..., 0],
-                                                                                             edge[..., 1]), 1e-12)
-    return np.all(cross >= -_BORDER_EPS_M, axis=2) | np.all(cross <= _BORDER_EPS_M, axis=2)
+    """Whether q (n, 2) lies in the lane quadrilaterals corners (n, k, 4, 2) (inner_i, inner_i+1,
+    outer_i+1, outer_i), borders included. Tested as two triangles, so a quadrilateral folded by
+    a turn tighter than its lane's offset (a town junction's corner) still holds its own centre."""
+    hit = np.zeros(corners.shape[:2], bool)
+    for tri in ((0, 1, 2), (0, 2, 3)):
+        pts = corners[:, :, tri, :]
+        edge = np.roll(pts, -1, axis=2) - pts
+        rel = q[:, None, None, :] - pts
+        cross = (edge[..., 0] * rel[..., 1] - edge[..., 1] * rel[..., 0]) / np.maximum(
+            np.hypot(edge[..., 0], edge[..., 1]), 1e-12)
+        hit |= np.all(cross >= -_BORDER_EPS_M, axis=2) | np.all(cross <= _BORDER_EPS_M, axis=2)
+    return hit
 
 
 def holding_lanes(cells: _Cells, q: np.ndarray, q_hdg: np.ndarray, tol_rad: float) -> np.ndarray:
