@@ -19,9 +19,11 @@ arguments is not run again (`--force` runs it anyway). `--jobs N` runs N cases a
 is one process at a time; the 2-core machine takes `--jobs 2`). Corridor maps are written to
 OUT/corridors/ (never committed).
 
-Time per case, measured on the shared 2-core machine beside other work (load ~4-8): see
-BENCHMARKS.md "Generalisation sweep"; the full sweep (24 shared maps x 3 + 20 x 2 = 112 cases) is
-hours there, so it is for a quiet machine.
+Time per case (simulate + build + check + compare), measured on the shared 2-core machine with
+other work beside it (load average 15-20): a 1 km drive on a shared map 106-181 s, a 1 km drive
+on a corridor 128-137 s, a 3 km corridor drive: see BENCHMARKS.md "Generalisation sweep". The
+quick run (8 cases) took 19 min there; the full sweep (24 shared maps x 3 + 20 corridors x 2 = 112
+cases, corridors at 3 km) is ~4-6 h there at --jobs 1, so it is for a quiet machine.
 """
 
 from __future__ import annotations

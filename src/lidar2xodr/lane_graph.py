@@ -28,7 +28,8 @@ Rule (the evaluation docstring and the README quote it):
    route or a successor, that is a BREAK: the generated links take the vehicle elsewhere (a lane
    routed into a sliver or an exit, a missing link). Length counts as wrong from there until a
    holding lane is one the generated links can reach from the route (e.g. the sliver's end
-   rejoining the through lane); only then is the next break counted. A sample no generated lane
+   rejoining the through lane); only then is the next break counted (a break where the reference
+   is not evaluated is counted at the first evaluated sample it makes wrong). A sample no generated lane
    holds is wrong (a gap, a missing lane, a lane beside the reference one) and restarts the route
    after it: links cannot be judged across a gap the map does not model.
 5. Coverage: only samples inside the reference stretch `compare` evaluates (per reference road and
@@ -389,6 +390,7 @@ def _reference_samples(sections: list[Any], odr: Any, graph: LaneGraph) -> tuple
 class _Route:
     lanes: frozenset[int] = frozenset()
     on: bool = True
+    counted: bool = True  # off the route: its break was counted (it is counted at the first evaluated sample)
 
 
 @dataclass
@@ -411,7 +413,7 @@ def _follow(piece: _Piece, route: _Route, codes: np.ndarray, evaluated: np.ndarr
     starts = np.flatnonzero(change)
     ends = np.append(starts[1:], len(rows))
     weight = samples["weight"][piece.first:piece.stop]
-    lanes, on = route.lanes, route.on
+    lanes, on, counted = route.lanes, route.on, route.counted
     for a, b in zip(starts, ends, strict=True):
         row = rows[a]
         w = float(weight[a:b].sum()) if ev[a] else 0.0
@@ -437,15 +439,17 @@ def _follow(piece: _Piece, route: _Route, codes: np.ndarray, evaluated: np.ndarr
             else:
                 tally.narrow += w
             continue
-        if on and ev[a]:
+        if on:
+            on, counted = False, False
+        if ev[a] and not counted:
+            counted = True
             tally.breaks += 1
             if len(tally.breaks_at) < _MAX_BREAKS_LISTED:
                 x, y = samples["xy"][piece.first + a]
                 tally.breaks_at.append({"x": round(float(x), 2), "y": round(float(y), 2),
                                         "reference_road": ref_key[0], "reference_lane": ref_key[2]})
-        on = False
         tally.off_route += w
-    return _Route(lanes, on)
+    return _Route(lanes, on, counted)
 
 
 def lane_graph_agreement(gen_map: Any, ref_map: Any, cfg: EvaluationConfig, driving: frozenset[str],
@@ -482,7 +486,8 @@ def lane_graph_agreement(gen_map: Any, ref_map: Any, cfg: EvaluationConfig, driv
         if p.node in final:
             continue
         before = [final[n] for n in sorted(ref_graph.pred[p.node]) if n in final]
-        start = _Route(frozenset().union(*(r.lanes for r in before)), any(r.on for r in before) or not before)
+        on = any(r.on for r in before) or not before
+        start = _Route(frozenset().union(*(r.lanes for r in before)), on, on or any(r.counted for r in before))
         final[p.node] = _follow(p, start, codes, evaluated, samples, gen_graph, 2.0 * step, tally,
                                 ref_graph.keys[p.node])
         queue.extend(piece_of[n] for n in sorted(ref_graph.succ[p.node], reverse=True)
