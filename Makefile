@@ -36,9 +36,15 @@ test: setup
 bench: setup
 	$(BIN)/python bench/run.py
 
-# every shared map, 1 km each: what check says about the built map (issue #6), no targets applied
+# issue #13: every shared map x 3 seeds + 20 random roadgen corridors x 2 seeds, one table and the done-when check
+# (hours on 2 cores; resumable, JOBS=2 runs two cases at once). sweep-quick: the fixed ~20 min subset.
+JOBS ?= 1
 sweep: setup
-	$(BIN)/python bench/sweep.py
+	$(BIN)/python bench/sweep.py --jobs $(JOBS)
+
+.PHONY: sweep-quick
+sweep-quick: setup
+	$(BIN)/python bench/sweep.py --quick --jobs $(JOBS)
 
 lint: $(VENV)/.stamp
 	$(BIN)/ruff check src tests bench

@@ -27,7 +27,9 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("LIDAR2XODR_SHARED_DATA", REPO.parent / "shared" / "data"))
-CLI = [str(REPO / ".venv" / "bin" / "lidar2xodr")]
+_VENV_CLI = REPO / ".venv" / "bin" / "lidar2xodr"
+# the project's venv when there is one (make setup), else this interpreter (PYTHONPATH=src in a worktree)
+CLI = [str(_VENV_CLI)] if _VENV_CLI.exists() else [sys.executable, "-m", "lidar2xodr.cli"]
 
 # name -> (path relative to shared/data/maps, lane-count target)
 ACCURACY_MAPS = {
@@ -70,22 +72,25 @@ def check_row(xodr: Path, out_json: Path) -> dict:
     return row
 
 
-def bench_map(name: str, xodr: Path, out: Path, length_m: float, lane_target: float) -> dict:
-    drive = out / name / "drive"
-    row: dict = {"map": name, "length_m": length_m}
-    rc, t_sim, log = run(CLI + ["simulate", str(xodr), str(drive), "--length-m", str(length_m), "--seed", "1"])
+def bench_map(name: str, xodr: Path, out: Path, length_m: float, lane_target: float, seed: int = 1,
+              case: str | None = None) -> dict:
+    """simulate (at `seed`) -> build -> check -> compare of one map; files under out/(case or name)."""
+    base = out / (case or name)
+    drive = base / "drive"
+    row: dict = {"map": name, "seed": seed, "length_m": length_m}
+    rc, t_sim, log = run(CLI + ["simulate", str(xodr), str(drive), "--length-m", str(length_m), "--seed", str(seed)])
     row["simulate_s"] = round(t_sim, 1)
     if rc != 0:
         row["error"] = "simulate: " + log.strip().splitlines()[-1]
         return row
-    xodr_out = out / name / "map.xodr"
-    rc, t_build, log = run(CLI + ["build", str(drive), "-o", str(xodr_out), "--report", str(out / name / "report")])
+    xodr_out = base / "map.xodr"
+    rc, t_build, log = run(CLI + ["build", str(drive), "-o", str(xodr_out), "--report", str(base / "report")])
     row["build_s"] = round(t_build, 1)
     if rc != 0:
         row["error"] = "build: " + log.strip().splitlines()[-1]
         return row
-    row.update(check_row(xodr_out, out / name / "check.json"))
-    metrics_path = out / name / "metrics.json"
+    row.update(check_row(xodr_out, base / "check.json"))
+    metrics_path = base / "metrics.json"
     rc, _, log = run(CLI + ["compare", str(xodr_out), str(xodr), "--json", str(metrics_path)])
     if not metrics_path.exists():
         row["error"] = "compare: " + log.strip().splitlines()[-1]
@@ -101,6 +106,9 @@ def bench_map(name: str, xodr: Path, out: Path, length_m: float, lane_target: fl
         eval_length_m=m["boundaries"]["eval_length_m"],
         elevation_rmse=m.get("elevation", {}).get("rmse_m"),
         elevation_mean=m.get("elevation", {}).get("mean_m"),
+        lane_graph=m.get("lane_graph", {}).get("agreement"),
+        lane_graph_breaks=m.get("lane_graph", {}).get("breaks"),
+        lane_graph_wrong_m=m.get("lane_graph", {}).get("wrong_m"),
         lane_target=lane_target,
     )
     lanes_ok = row["lane_count"] >= lane_target

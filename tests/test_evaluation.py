@@ -234,7 +234,10 @@ def test_cli_json_is_deterministic(tmp_path: Path) -> None:
     assert outs[0] == outs[1]
     data = json.loads(outs[0])
     assert set(data["boundaries"]) >= {"rmse_m", "mean_m", "std_m", "p95_m", "max_m", "eval_length_m"}
-    assert {"lane_count_agreement", "coverage", "lane_width", "centerline"} <= set(data)
+    assert {"lane_count_agreement", "coverage", "lane_width", "centerline", "lane_graph"} <= set(data)
+    assert {"agreement", "breaks", "wrong_m"} <= set(data["lane_graph"])
+    res = CliRunner().invoke(app, ["compare", str(gen), str(ref)])
+    assert "lane graph agreement" in res.output
 
 
 def test_bad_input(tmp_path: Path) -> None:

@@ -342,6 +342,15 @@ class EvaluationConfig(_Section):
                                          "direction differs by at most this (keeps the opposite carriageway out)")
     lane_count_min_width_m: float = Field(1.75, gt=0, description="ours: narrower driving lanes (opening or closing "
                                           "tapers) are not counted; half the paper's 3.5 m lane")
+    lane_graph_step_m: float = Field(0.5, gt=0, description="ours: lane-graph agreement follows each reference "
+                                     "lane centre in steps of this length; a tenth of a 6 m dash, so no lane "
+                                     "section or link change is stepped over")
+    lane_graph_min_width_m: float = Field(1.75, description="ours: a generated lane narrower than this where "
+                                          "it holds a reference lane's centre is not a lane there (half the "
+                                          "paper's 3.5 m lane; issue #13's 0.54 m sliver is far below it)")
+    lane_graph_taper_m: float = Field(60.0, description="ours: a narrower generated lane still counts within "
+                                      "this length of its lane's first or last end (an opening or closing taper; "
+                                      "German motorway tapers run 60-70 m, RAA)")
 
 
 class ScenarioConfig(_Section):

@@ -58,6 +58,20 @@ reference's frame with pyproj (headings rotated with it); otherwise both are tak
    length-weighted RMSE, signed mean, sigma, 95th percentile and maximum of |dz|. Both z are the
    road surface as the files write it (elevation plus superelevation at the carriageway's centre);
    when the frames are projected, z is compared as written (no vertical datum shift).
+
+8. `lane_graph`: does the generated map ROUTE a vehicle along the reference's lanes? Each reference
+   driving lane's centre line is followed through the reference's lane links (lane sections, road
+   links, junction connections), sampled every `lane_graph_step_m` (0.5 m); at each sample the
+   generated driving lanes of the same travel direction whose lane polygon encloses it are found.
+   A sample agrees when one of them is the generated route's lane or a linked successor of it
+   (lane link, road link or junction connection in the GENERATED map) and it is at least
+   `lane_graph_min_width_m` (1.75 m) wide there, or narrower within `lane_graph_taper_m` (60 m) of
+   its lane's first or last end (a taper). A `break` is a place where the next sample's lane is
+   neither; the length from there on is wrong until a lane the generated links can reach holds the
+   reference lane again. Coverage enters as in rule 6: only reference samples inside the covered
+   stretch of their road and side count, and every one of them does, so uncovered or unheld length
+   inside it is wrong, never agreement. `agreement` = agreeing length / evaluated reference lane
+   length, `wrong_m` = the rest. Full rule: `lidar2xodr.lane_graph`.
 """
 
 from __future__ import annotations
@@ -74,6 +88,7 @@ from scipy.spatial import cKDTree
 
 from lidar2xodr.config import EvaluationConfig
 from lidar2xodr.errors import InputError
+from lidar2xodr.lane_graph import lane_graph_agreement
 
 DRIVING_TYPES = frozenset(
     t.lower()
@@ -130,6 +145,7 @@ class Carriageways:
     centre_z: np.ndarray  # (n,) road surface height at the centre line
     boundaries: Lines
     boundary_query: np.ndarray  # (k,) bool: False for the duplicate outer border of a zero-width lane
+    group_keys: list[tuple[str, int]]  # (road id, side) of each group index
 
     def lane_count(self, min_width: float) -> np.ndarray:
         return np.sum(np.nan_to_num(self.lane_width, nan=0.0) >= min_width, axis=1)
@@ -206,6 +222,7 @@ def carriageways(odr: Any, step: float, transform: Any = None) -> Carriageways:
         centre_z=_cat(centre_z, (0,)),
         boundaries=Lines.con_cat(bounds),
         boundary_query=_cat(query, (0,)).astype(bool),
+        group_keys=list(groups),
     )
 
 
@@ -381,6 +398,7 @@ def compare_maps(generated: Path, reference: Path, cfg: EvaluationConfig) -> dic
     d_r, v_r, past_r = nearest(gen.centre, ref.centre.xy, ref.centre.hdg, tol)
     near = (d_r <= gen.half_width[v_r] + cfg.near_m) & ~past_r
     coverage, ref_length = _coverage(ref, near)
+    lane_graph = lane_graph_agreement(gen_map, ref_map, cfg, DRIVING_TYPES, _covered_stretches(ref, near), transform)
 
     return {
         "boundaries": _stats(d_b, gen.boundaries.weight[q]),
@@ -390,12 +408,16 @@ def compare_maps(generated: Path, reference: Path, cfg: EvaluationConfig) -> dic
         "elevation": _elevation(gen, ref, matched, v_c),
         "coverage": coverage,
         "reference_eval_length_m": ref_length,
+        "lane_graph": lane_graph,
         "frame": frame,
         "settings": {
             "sample_step_m": cfg.sample_step_m,
             "near_m": cfg.near_m,
             "heading_tolerance_deg": cfg.heading_tolerance_deg,
             "lane_count_min_width_m": cfg.lane_count_min_width_m,
+            "lane_graph_step_m": cfg.lane_graph_step_m,
+            "lane_graph_min_width_m": cfg.lane_graph_min_width_m,
+            "lane_graph_taper_m": cfg.lane_graph_taper_m,
         },
     }
 
@@ -421,6 +443,15 @@ def _lane_width(gen: Carriageways, ref: Carriageways, matched: np.ndarray, v_c: 
     bias = float(np.sum(weights * diff) / weights.sum())
     std = float(math.sqrt(np.sum(weights * (diff - bias) ** 2) / weights.sum()))
     return {"bias_m": bias, "std_m": std, "pairs": int(diff.size)}
+
+
+def _covered_stretches(ref: Carriageways, near: np.ndarray) -> dict[tuple[str, int], tuple[float, float]]:
+    """Per reference (road id, side): the s range between its first and last near sample (rule 6)."""
+    out: dict[tuple[str, int], tuple[float, float]] = {}
+    for g in np.unique(ref.group[near]):
+        s = ref.s[near & (ref.group == g)]
+        out[ref.group_keys[int(g)]] = (float(s.min()), float(s.max()))
+    return out
 
 
 def _coverage(ref: Carriageways, near: np.ndarray) -> tuple[float, float]:
@@ -458,6 +489,9 @@ def print_metrics(metrics: dict[str, Any], console: Console) -> None:
     z = metrics["elevation"]
     summary.add_row("elevation RMSE / mean / max (m)", f"{z['rmse_m']:.3f} / {z['mean_m']:+.3f} / {z['max_m']:.3f}")
     summary.add_row("coverage of the reference", f"{metrics['coverage']:.3f}")
+    graph = metrics["lane_graph"]
+    summary.add_row("lane graph agreement / breaks / wrong (m)",
+                    f"{graph['agreement']:.3f} / {graph['breaks']} / {graph['wrong_m']:.0f}")
     summary.add_row("evaluated reference length (m)", f"{metrics['reference_eval_length_m']:.0f}")
     summary.add_row("frame", metrics["frame"])
     console.print(summary)

@@ -1,0 +1,97 @@
+"""bench/sweep.py's summary and bench/corridors.py's maps (no sweep is run here)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+
+import corridors  # noqa: E402
+import sweep  # noqa: E402
+
+from lidar2xodr.evaluation import DRIVING_TYPES  # noqa: E402
+from lidar2xodr.lane_graph import build_lane_graph  # noqa: E402
+from lidar2xodr.opendrive import OpenDriveMap  # noqa: E402
+
+
+def _row(name: str, seed: int = 1, **kw: object) -> dict:
+    row = {"map": name, "seed": seed, "asam_errors": 0, "leap_m": 0.0, "kink_rad": 0.0, "boundaries_rmse": 0.05,
+           "centerline_rmse": 0.05, "lane_count": 1.0, "lane_graph": 1.0, "lane_graph_breaks": 0}
+    row.update(kw)
+    return row
+
+
+def test_summary_counts_targets_failures_and_worst_cases() -> None:
+    rows = [_row("a"), _row("b", boundaries_rmse=0.6), _row("c", lane_graph=0.9, lane_graph_breaks=2),
+            _row("d", asam_errors=3), {"map": "e", "seed": 2, "error": "build: no road"}, _row("f", kink_rad=0.01)]
+    s = sweep.summarise(rows)
+    assert s["cases"] == 6 and s["built"] == 5
+    assert s["valid_maps"] == 3  # a, b, c; d has ASAM errors, e was not built, f kinks
+    assert s["meeting_targets"] == 1 and s["share_meeting_targets"] == pytest.approx(1 / 6)
+    assert s["above_0_5_m"] == ["b s1"] and not s["done"]
+    causes = {f["map"]: f["cause"] for f in s["failures"]}
+    assert set(causes) == {"b", "c", "d", "e", "f"}
+    assert causes["e"] == "build: no road" and causes["d"] == "3 ASAM error(s)"
+    assert "lane_graph 0.900 below 0.98" in causes["c"] and "2 lane-graph break(s)" in causes["c"]
+    assert "boundaries_rmse 0.600 above 0.1" in causes["b"] and "heading kink" in causes["f"]
+    assert s["worst"]["boundaries_rmse"][0] == {"map": "b", "seed": 1, "boundaries_rmse": 0.6}
+    assert s["worst"]["lane_graph"][0]["map"] == "c"
+    assert s["medians"]["boundaries_rmse"] == pytest.approx(0.05)
+    text = sweep.format_summary(s)
+    assert "1/6 = 17 %" in text and "done when met: no" in text
+
+
+def test_summary_done_when_every_case_meets_the_targets() -> None:
+    rows = [_row(f"m{i}", seed) for i in range(10) for seed in (1, 2)]
+    rows[0]["lane_graph"] = 0.97  # 1 of 20 misses: 95 % still meets the targets
+    s = sweep.summarise(rows)
+    assert s["share_meeting_targets"] == pytest.approx(0.95) and s["done"]
+    rows[1]["lane_count"] = 0.5
+    assert not sweep.summarise(rows)["done"]
+
+
+def test_cases_of_a_quick_run_are_fixed(tmp_path: Path) -> None:
+    args = argparse.Namespace(quick=True, maps=None, length_m=None, corridors=20, out=tmp_path)
+    todo = sweep.cases(args)
+    corr = [c for c in todo if c["kind"] == "corridor"]
+    assert [c["map"] for c in corr] == ["corridor_001", "corridor_002"]
+    assert all(c["seed"] == 1 and c["length_m"] == sweep.QUICK_LENGTH_M for c in todo)
+    full = sweep.cases(argparse.Namespace(quick=False, maps=None, length_m=None, corridors=3, out=tmp_path))
+    corr = [c for c in full if c["kind"] == "corridor"]
+    assert len(corr) == 6 and {c["length_m"] for c in corr} == {sweep.CORRIDOR_LENGTH_M}
+    assert len({sweep.case_id(c) for c in full}) == len(full)
+
+
+def test_a_stored_row_is_reused_only_for_the_same_commit_and_arguments(tmp_path: Path) -> None:
+    case = {"kind": "shared", "map": "x", "xodr": str(tmp_path / "absent.xodr"), "seed": 1, "length_m": 1000.0}
+    key = {"commit": "abc", "case": case}
+    sweep._store(tmp_path / "rows" / f"{sweep.case_id(case)}.json", key, {"map": "x", "seed": 1, "stored": True})
+    assert sweep.run_case(case, tmp_path, "abc", force=False)["stored"]
+    rerun = sweep.run_case(case, tmp_path, "def", force=False)  # another commit: run (the map is absent)
+    assert "stored" not in rerun and "error" in rerun
+
+
+def test_corridor_is_reproducible_and_a_valid_network(tmp_path: Path) -> None:
+    pytest.importorskip("roadgen")
+    a, b = tmp_path / "a.xodr", tmp_path / "b.xodr"
+    spec = corridors.write_corridor(3, a, length_m=2500.0)
+    corridors.write_corridor(3, b, length_m=2500.0)
+    assert a.read_bytes() == b.read_bytes()
+    assert 2 <= spec.lanes <= 4 and all(700.0 <= abs(c["radius_m"]) <= 5000.0 for c in spec.curves)
+    assert len(spec.ramps) + len(spec.dropped_ramps) >= 1
+    odr = OpenDriveMap.load(a)
+    assert odr.junctions, "slip roads join the carriageways through junctions"
+    widths = [float(np.nanmax(lane.width(np.linspace(0.0, ls.s_end - ls.s, 50))))
+              for road in odr.roads.values() for ls in road.lane_sections for lane in ls.lanes.values() if lane.id]
+    assert max(widths) < 10.0, "no lane extrapolated from a width record that starts late"
+    graph = build_lane_graph(odr, DRIVING_TYPES)
+    driving = [r for r in odr.roads.values() if r.junction == "-1"
+               and any(ls.lanes[i].type == "driving" for ls in r.lane_sections for i in ls.lanes)]
+    assert len(driving) >= 3 and sum(len(s) for s in graph.succ) > 0
+    other = corridors.write_corridor(4, tmp_path / "c.xodr", length_m=2500.0)
+    assert other.curves != spec.curves
