@@ -131,6 +131,8 @@ def build(
         None, "--keep-intermediate", help="Keep markings.ply and lanes.json in this folder."
     ),
     allow_invalid: bool = typer.Option(False, "--allow-invalid", help="Write the map even if it fails check."),
+    reference: Path | None = typer.Option(None, "--reference", help="A reference .xodr (ground truth): compare "
+                                          "with it and draw it in the report."),
     config: Path | None = ConfigOpt,
 ) -> None:
     """The whole pipeline: extract markings, build lanes, export a checked OpenDRIVE map."""
@@ -142,9 +144,11 @@ def build(
         if odometry not in ("auto", "gnss", "lidar"):
             raise InputError("--odometry", f"unknown value {odometry!r} (gnss, lidar or auto)")
         cfg = cfg.model_copy(update={"extraction": cfg.extraction.model_copy(update={"odometry": odometry})})
+    if reference is not None and not reference.is_file():
+        raise InputError(reference, "reference map not found")
     result = BuildPipeline(
         drive, output, cfg, data_format=data_format, report_dir=report, scenario=scenario,
-        keep_intermediate=keep_intermediate, allow_invalid=allow_invalid, console=console,
+        keep_intermediate=keep_intermediate, allow_invalid=allow_invalid, reference=reference, console=console,
     ).run()
     from lidar2xodr.pipeline import print_summary
 
