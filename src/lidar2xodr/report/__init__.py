@@ -3,8 +3,9 @@
 In reading order: the verdict (what was built, the check per reader, the metrics against the
 reference, the warnings with the stretch of road they name) beside an interactive map of the
 written OpenDRIVE that zooms to lane level; close-ups of every junction and lane-count change; the
-error along the road when a reference is given; the scenario; the pictures of the method's stages;
-and last, once, the raw numbers. No internet needed: plotly.js is inlined, pictures are embedded.
+error along the road when a reference is given; the scenario; and last, once, the raw numbers. (The
+lanes stage's own pictures come from `lidar2xodr lanes --report`; here its candidate lines are a
+layer of the map, which costs no time.) No internet needed: plotly.js is inlined, pictures are embedded.
 """
 
 from __future__ import annotations
@@ -87,6 +88,7 @@ def _page(verdict: Verdict, odr: OpenDriveMap, ref_odr: OpenDriveMap | None, clo
     below_borders = next((k for k, layer in enumerate(layers) if layer.kind != "fill"), len(layers))
     under = [mapview.cloud_layer(cloud, rc), mapview.reference_layer(ref_odr, extent, rc) if ref_odr else None]
     layers[below_borders:below_borders] = [layer for layer in under if layer is not None]
+    layers += mapview.candidate_layers(model)
     path = mapview.path_layer(cloud)
     if path is not None:
         layers.append(path)
@@ -106,7 +108,6 @@ def _page(verdict: Verdict, odr: OpenDriveMap, ref_odr: OpenDriveMap | None, clo
         sections.append(_along_road_html(map_path, reference, cfg))
     if scenario:
         sections.append(_scenario_html(scenario, map_path))
-    sections.append(_stages_html(cloud, model))
     sections.append(page.raw_numbers_html(raw))
     return "\n".join([
         "<!doctype html><html lang='en'><head><meta charset='utf-8'>",
@@ -223,19 +224,3 @@ def _scenario_html(scenario: dict[str, Any], map_path: Path) -> str:
             + (f"<details class='msgs'><summary>{len(summ.warnings)} warning(s)</summary><ul>{warns}</ul></details>"
                if warns else "")
             + page.image(png.getvalue(), "The ego and every participant on the generated lanes (road frame)"))
-
-
-def _stages_html(cloud: MarkingCloud, model: LaneModel) -> str:
-    import matplotlib.pyplot as plt
-
-    from lidar2xodr.lanes_report import lane_model_figure
-
-    if len(model.s) < 2:
-        return ""
-    fig = lane_model_figure(cloud, model)
-    png = io.BytesIO()
-    fig.savefig(png, format="png")
-    plt.close(fig)
-    return ('<details class="stages"><summary>How the lanes were found</summary>'
-            + page.image(png.getvalue(), "Lanes stage: marking points, candidate lines by superline, "
-                         "boundaries and reference line (details in the road's own frame)") + "</details>")

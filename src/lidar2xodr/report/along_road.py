@@ -11,14 +11,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
-import plotly.graph_objects as go
-from plotly.subplots import make_subplots
 
 from lidar2xodr.config import EvaluationConfig
 from lidar2xodr.evaluation import DRIVING_TYPES, _frame_transform, carriageways, nearest
 from lidar2xodr.opendrive import OpenDriveMap
+from lidar2xodr.report.mapview import typed
 
 
 @dataclass
@@ -66,29 +66,31 @@ def error_profiles(generated: Path, reference: Path, cfg: EvaluationConfig, step
     return out
 
 
-def profile_figure(profiles: list[Profile], height: int = 420) -> go.Figure:
+def profile_figure(profiles: list[Profile], height: int = 420) -> dict[str, Any]:
     """Distance to the reference (top) and lane counts of both maps (bottom) against s; a click zooms the map."""
-    fig = make_subplots(rows=2, cols=1, shared_xaxes=True, row_heights=[0.65, 0.35], vertical_spacing=0.06)
     colours = ["#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#17becf"]
+    data: list[dict[str, Any]] = []
     for k, p in enumerate(profiles):
         colour = colours[k % len(colours)]
-        custom = np.round(p.xy, 1).astype(np.float32)
-        fig.add_trace(go.Scatter(x=np.round(p.s, 1), y=np.round(p.error_m, 3), mode="lines", name=p.label,
-                                 line=dict(color=colour, width=1.2), customdata=custom, legendgroup=p.label,
-                                 hovertemplate="s %{x:.0f} m: %{y:.3f} m off the reference<extra>%{fullData.name}"
-                                               "</extra>"), row=1, col=1)
-        fig.add_trace(go.Scatter(x=np.round(p.s, 1), y=p.lanes, mode="lines", line=dict(color=colour, width=1.5,
-                                 shape="hv"), name=f"{p.label}: lanes", legendgroup=p.label, showlegend=False,
-                                 customdata=custom, hovertemplate="s %{x:.0f} m: %{y} lanes<extra>generated</extra>"),
-                      row=2, col=1)
-        fig.add_trace(go.Scatter(x=np.round(p.s, 1), y=p.reference_lanes, mode="lines", legendgroup=p.label,
-                                 line=dict(color="#e4572e", width=1.5, dash="dot", shape="hv"), showlegend=k == 0,
-                                 name="reference lanes", customdata=custom,
-                                 hovertemplate="s %{x:.0f} m: %{y} lanes<extra>reference</extra>"), row=2, col=1)
-    fig.update_layout(template="none", height=height, margin=dict(l=60, r=10, t=10, b=40), hovermode="x",
-                      font=dict(family="sans-serif", size=12), legend=dict(orientation="h", y=1.02, yanchor="bottom"),
-                      plot_bgcolor="white", paper_bgcolor="white")
-    fig.update_yaxes(title_text="centre line off [m]", rangemode="tozero", gridcolor="#eeeeee", row=1, col=1)
-    fig.update_yaxes(title_text="lanes", dtick=1, rangemode="tozero", gridcolor="#eeeeee", row=2, col=1)
-    fig.update_xaxes(title_text="s along the generated road [m]", gridcolor="#eeeeee", row=2, col=1)
-    return fig
+        common = {"type": "scatter", "mode": "lines", "x": typed(np.round(p.s, 1).astype(np.float32)),
+                  "customdata": typed(np.round(p.xy, 1).astype(np.float32)), "legendgroup": p.label}
+        data.append({**common, "y": typed(np.round(p.error_m, 3).astype(np.float32)), "name": p.label,
+                     "line": {"color": colour, "width": 1.2}, "yaxis": "y",
+                     "hovertemplate": "s %{x:.0f} m: %{y:.3f} m off the reference<extra>%{fullData.name}</extra>"})
+        data.append({**common, "y": typed(p.lanes.astype(np.float32)), "name": f"{p.label}: lanes", "yaxis": "y2",
+                     "showlegend": False, "line": {"color": colour, "width": 1.5, "shape": "hv"},
+                     "hovertemplate": "s %{x:.0f} m: %{y} lanes<extra>generated</extra>"})
+        data.append({**common, "y": typed(p.reference_lanes.astype(np.float32)), "name": "reference lanes",
+                     "yaxis": "y2", "showlegend": k == 0, "line": {"color": "#e4572e", "width": 1.5, "dash": "dot",
+                                                                    "shape": "hv"},
+                     "hovertemplate": "s %{x:.0f} m: %{y} lanes<extra>reference</extra>"})
+    grid = {"gridcolor": "#eeeeee", "zeroline": False}
+    layout = {
+        "height": height, "margin": {"l": 60, "r": 10, "t": 10, "b": 40}, "hovermode": "x",
+        "font": {"family": "sans-serif", "size": 12}, "plot_bgcolor": "white", "paper_bgcolor": "white",
+        "legend": {"orientation": "h", "y": 1.02, "yanchor": "bottom"},
+        "xaxis": {**grid, "anchor": "y2", "title": {"text": "s along the generated road [m]"}},
+        "yaxis": {**grid, "domain": [0.4, 1.0], "rangemode": "tozero", "title": {"text": "centre line off [m]"}},
+        "yaxis2": {**grid, "domain": [0.0, 0.32], "rangemode": "tozero", "dtick": 1, "title": {"text": "lanes"}},
+    }
+    return {"data": data, "layout": layout}

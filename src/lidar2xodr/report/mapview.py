@@ -4,20 +4,21 @@ Lane areas are filled by lane type, lane borders drawn thin, road marks as writt
 lines, broken ones as their dashes at the written length and gap, so zooming in shows them as
 painted), the reference line, junctions and lane-count changes marked, the marking cloud as light
 points (one per `cloud_cell_m` cell, at most `max_cloud_points`), the drive's path, and the
-reference map in another colour when given. Everything is sampled from the written OpenDRIVE with
+reference map in another colour when given, and (off until clicked in the legend) the lanes stage's
+candidate lines. Everything is sampled from the written OpenDRIVE with
 the project's reader, every `map_step_m`. A close-up is the same layers clipped to a window.
 """
 
 from __future__ import annotations
 
+import base64
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import plotly.graph_objects as go
 
 from lidar2xodr.config import ReportConfig
-from lidar2xodr.data import MarkingCloud
+from lidar2xodr.data import LaneModel, MarkingCloud
 from lidar2xodr.opendrive import OpenDriveMap, Road
 from lidar2xodr.report.verdict import Verdict
 
@@ -49,6 +50,14 @@ class Layer:
     legend: bool = True
     visible: bool | str = True
     group: str = ""
+    _flat: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False, compare=False)
+
+    def flat(self) -> tuple[np.ndarray, np.ndarray]:
+        """All parts stacked, and the part each row belongs to (computed once, for every close-up)."""
+        if self._flat is None:
+            rows = np.concatenate(self.parts) if self.parts else np.zeros((0, 2))
+            self._flat = (rows, np.repeat(np.arange(len(self.parts)), [len(p) for p in self.parts]))
+        return self._flat
 
 
 @dataclass
@@ -183,6 +192,18 @@ def cloud_layer(cloud: MarkingCloud, cfg: ReportConfig) -> Layer | None:
     return Layer(name, "points", [xy[first]], "#7fa7d4", size=2.5, opacity=0.55, group="cloud")
 
 
+def candidate_layers(model: LaneModel) -> list[Layer]:
+    """The lanes stage's candidate lines (chained cluster centres): kept in a superline or ignored; off at first."""
+    kept = [np.asarray(c.centers, dtype=np.float64)[:, :2] for c in model.candidates if c.superline >= 0]
+    ignored = [np.asarray(c.centers, dtype=np.float64)[:, :2] for c in model.candidates if c.superline < 0]
+    out = []
+    for name, parts, colour in (("candidate lines, kept", kept, "#2ca02c"), ("candidate lines, ignored", ignored,
+                                                                             "#9a9a9a")):
+        if parts:
+            out.append(Layer(name, "line", parts, colour, width=1.0, visible="legendonly", group="candidates"))
+    return out
+
+
 def path_layer(cloud: MarkingCloud, max_points: int = 4000) -> Layer | None:
     """The drive's path (the poses the scans were placed with), off until clicked in the legend."""
     if not len(cloud.trajectory):
@@ -225,32 +246,35 @@ def place_layers(found: list[Place]) -> list[Layer]:
     return out
 
 
-def _runs(xy: np.ndarray, inside: np.ndarray) -> list[np.ndarray]:
-    """The runs of consecutive rows that are inside, each with one row beyond either end."""
-    keep = inside | np.r_[inside[1:], False] | np.r_[False, inside[:-1]]
+def _runs(xy: np.ndarray, inside: np.ndarray, part: np.ndarray | None = None) -> list[np.ndarray]:
+    """The runs of consecutive rows (of one part) that are inside, each with one row beyond either end."""
+    same = np.ones(max(len(xy) - 1, 0), bool) if part is None else part[1:] == part[:-1]
+    keep = inside | (np.r_[inside[1:], False] & np.r_[same, False]) | (np.r_[False, inside[:-1]] & np.r_[False, same])
     idx = np.flatnonzero(keep)
     if idx.size == 0:
         return []
-    return [xy[run] for run in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1) if run.size > 1]
+    cut = (np.diff(idx) > 1) | ~same[idx[:-1]]
+    return [xy[run] for run in np.split(idx, np.flatnonzero(cut) + 1) if run.size > 1]
 
 
-def _clip(parts: list[np.ndarray], box: tuple[float, float, float, float] | None) -> list[np.ndarray]:
+def _clip(layer: Layer, box: tuple[float, float, float, float] | None) -> list[np.ndarray]:
+    """The layer's parts within `box` (points: those inside; lines and fills: the runs inside)."""
     if box is None:
-        return parts
+        return layer.parts
+    rows, part = layer.flat()
     x0, x1, y0, y1 = box
-    out = []
-    for p in parts:
-        inside = np.zeros(len(p), bool)
-        for c in range(0, p.shape[1], 2):
-            inside |= (p[:, c] >= x0) & (p[:, c] <= x1) & (p[:, c + 1] >= y0) & (p[:, c + 1] <= y1)
-        out += _runs(p, inside) if len(p) > 1 else ([p] if inside.any() else [])
-    return out
+    inside = np.zeros(len(rows), bool)
+    for c in range(0, rows.shape[1], 2):
+        inside |= (rows[:, c] >= x0) & (rows[:, c] <= x1) & (rows[:, c + 1] >= y0) & (rows[:, c + 1] <= y1)
+    if layer.kind == "points":
+        return [rows[inside]] if inside.any() else []
+    return _runs(rows, inside, part)
 
 
-def _joined(parts: list[np.ndarray], kind: str, box: tuple[float, float, float, float] | None
-            ) -> tuple[np.ndarray, np.ndarray]:
-    """x and y of the parts clipped to `box`, NaN between them (fills closed as polygons), to the cm."""
-    parts = _clip(parts, box)
+def _joined(layer: Layer, box: tuple[float, float, float, float] | None) -> tuple[np.ndarray, np.ndarray]:
+    """x and y of the layer clipped to `box`, NaN between parts (fills closed as polygons), to the cm."""
+    kind = layer.kind
+    parts = _clip(layer, box)
     if kind == "fill":
         parts = [np.vstack([p[:, :2], p[::-1, 2:], p[:1, :2]]) for p in parts]
     if not parts:
@@ -263,44 +287,58 @@ def _joined(parts: list[np.ndarray], kind: str, box: tuple[float, float, float, 
     return xy[:, 0], xy[:, 1]
 
 
+def typed(values: np.ndarray) -> dict[str, str]:
+    """A numeric array as plotly.js's typed-array spec (base64 of little-endian float32/float64 bytes)."""
+    arr = np.ascontiguousarray(values)
+    dtype = "f4" if arr.dtype == np.float32 else "f8"
+    arr = arr.astype("<" + dtype, copy=False)
+    spec = {"dtype": dtype, "bdata": base64.b64encode(arr.tobytes()).decode("ascii")}
+    if arr.ndim > 1:
+        spec["shape"] = ", ".join(str(n) for n in arr.shape)
+    return spec
+
+
 def figure(layers: list[Layer], height: int, window: tuple[float, float, float, float] | None = None,
-           legend: bool = True) -> go.Figure:
-    """A plotly figure of the layers (world x, y at equal scales), clipped to `window` when given."""
-    fig = go.Figure()
+           legend: bool = True) -> dict[str, Any]:
+    """A plotly figure (as the dict plotly.js reads) of the layers at equal x, y scales, clipped to `window`.
+
+    Built as plain data rather than graph objects: validating thousands of properties per close-up
+    costs more than drawing them.
+    """
     margin = 0.25 * (window[1] - window[0]) if window is not None else 0.0
     clip = None if window is None else (window[0] - margin, window[1] + margin, window[2] - margin,
                                         window[3] + margin)
+    data: list[dict[str, Any]] = []
     for layer in layers:
-        x, y = _joined(layer.parts, layer.kind, clip)
+        x, y = _joined(layer, clip)
         if window is not None and x.size == 0:
             continue
-        common: dict[str, Any] = dict(x=x, y=y, name=layer.name, showlegend=legend and layer.legend,
-                                      visible=layer.visible, legendgroup=layer.group or layer.name)
+        trace: dict[str, Any] = {"type": "scatter", "x": typed(x), "y": typed(y), "name": layer.name,
+                                 "showlegend": legend and layer.legend, "visible": layer.visible,
+                                 "legendgroup": layer.group or layer.name, "hoverinfo": "skip"}
         if layer.kind == "fill":
-            fig.add_trace(go.Scatter(mode="lines", fill="toself", fillcolor=layer.colour, hoverinfo="skip",
-                                     line=dict(width=0, color=layer.colour), **common))
+            trace.update(mode="lines", fill="toself", fillcolor=layer.colour, line={"width": 0, "color": layer.colour})
         elif layer.kind == "line":
-            fig.add_trace(go.Scatter(mode="lines", hoverinfo="skip", line=dict(width=layer.width, color=layer.colour),
-                                     **common))
+            trace.update(mode="lines", line={"width": layer.width, "color": layer.colour})
         else:
-            hover: dict[str, Any] = dict(hovertext=layer.hover, hoverinfo="text") if layer.hover else \
-                dict(hoverinfo="skip")
-            fig.add_trace(go.Scatter(mode="markers", marker=dict(size=layer.size, color=layer.colour,
-                                                                 opacity=layer.opacity, line=dict(width=0)),
-                                     **hover, **common))
-    axis = dict(showgrid=True, gridcolor="#eeeeee", zeroline=False, ticksuffix=" m", showline=True,
-                linecolor="#bbbbbb", mirror=True)
-    fig.update_layout(
-        template="none", height=height, margin=dict(l=60, r=10, t=10, b=40), plot_bgcolor="white",
-        paper_bgcolor="white", hovermode="closest", dragmode="pan", font=dict(family="sans-serif", size=12),
-        showlegend=legend,
-        legend=dict(orientation="h", yanchor="bottom", y=1.0, x=0.0, bgcolor="rgba(255,255,255,0.8)"),
-        xaxis=dict(**axis), yaxis=dict(**axis, scaleanchor="x", scaleratio=1.0),
-    )
+            trace.update(mode="markers", marker={"size": layer.size, "color": layer.colour, "opacity": layer.opacity,
+                                                 "line": {"width": 0}})
+            if layer.hover:
+                trace.update(hovertext=layer.hover, hoverinfo="text")
+        data.append(trace)
+    axis: dict[str, Any] = {"showgrid": True, "gridcolor": "#eeeeee", "zeroline": False, "ticksuffix": " m",
+                            "showline": True, "linecolor": "#bbbbbb", "mirror": True}
+    layout: dict[str, Any] = {
+        "height": height, "margin": {"l": 60, "r": 10, "t": 10, "b": 40}, "plot_bgcolor": "white",
+        "paper_bgcolor": "white", "hovermode": "closest", "dragmode": "pan",
+        "font": {"family": "sans-serif", "size": 12}, "showlegend": legend,
+        "legend": {"orientation": "h", "yanchor": "bottom", "y": 1.0, "x": 0.0, "bgcolor": "rgba(255,255,255,0.8)"},
+        "xaxis": dict(axis), "yaxis": {**axis, "scaleanchor": "x", "scaleratio": 1.0},
+    }
     if window is not None:
-        fig.update_xaxes(range=[window[0], window[1]])
-        fig.update_yaxes(range=[window[2], window[3]])
-    return fig
+        layout["xaxis"]["range"] = [window[0], window[1]]
+        layout["yaxis"]["range"] = [window[2], window[3]]
+    return {"data": data, "layout": layout}
 
 
 def window(place: Place, aspect: float) -> tuple[float, float, float, float]:

@@ -13,7 +13,6 @@ import html
 import json
 from typing import Any
 
-import plotly.graph_objects as go
 import plotly.io as pio
 
 from lidar2xodr.report.verdict import ABSENT, FAIL, PASS, WARN, Verdict
@@ -102,7 +101,7 @@ def zoom_link(label: str, x: float, y: float, span: float) -> str:
     return f'<button class="zoom" {zoom_attr(x, y, span)} title="zoom the map here">{esc(label)}</button>'
 
 
-def plot_div(fig: go.Figure, div_id: str, post_script: str | None = None) -> str:
+def plot_div(fig: dict[str, Any], div_id: str, post_script: str | None = None) -> str:
     """A plotly figure as a <div> and its script (plotly.js is inlined once by the page)."""
     return pio.to_html(fig, include_plotlyjs=False, full_html=False, div_id=div_id, config=PLOT_CONFIG,
                        post_script=post_script, validate=False)
