@@ -128,6 +128,7 @@ def test_a_failed_or_missing_reader_is_never_shown_as_passed(tmp_path: Path) -> 
     assert "SUMO netconvert 1 FAILED" in v.headline() and "carla not available" in v.headline()
     assert make_verdict("m.xodr", odr, _check(ok=False), None, [], 1.75, 2.0).status == FAIL
     assert make_verdict("m.xodr", odr, _check(), None, [], 1.75, 2.0).status == PASS
+    assert make_verdict("m.xodr", odr, {}, None, [], 1.75, 2.0).status == ABSENT, "not checked is not passed"
 
 
 def test_metrics_come_most_telling_first_with_the_lane_graph(tmp_path: Path) -> None:

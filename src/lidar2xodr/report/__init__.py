@@ -112,6 +112,7 @@ def _page(verdict: Verdict, odr: OpenDriveMap, ref_odr: OpenDriveMap | None, clo
     return "\n".join([
         "<!doctype html><html lang='en'><head><meta charset='utf-8'>",
         f"<title>lidar2xodr report: {page.esc(map_path.name)}</title>",
+        f'<meta name="description" content="{page.esc(verdict.headline())}">',
         f"<style>{page.CSS}</style><script>{page.HEAD_JS}</script>",
         f"<script>{get_plotlyjs()}</script><script>{page.PAGE_JS}</script></head><body><main>",
         '<div id="js-error" hidden></div>',

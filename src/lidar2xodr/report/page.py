@@ -18,7 +18,8 @@ import plotly.io as pio
 from lidar2xodr.report.verdict import ABSENT, FAIL, PASS, WARN, Verdict
 
 STATUS_TEXT = {PASS: "passed", WARN: "warnings", FAIL: "failed", ABSENT: "not available"}
-BADGE_TEXT = {PASS: "Passes every check", WARN: "Passes the checks, with warnings", FAIL: "Fails the checks"}
+BADGE_TEXT = {PASS: "Passes every check", WARN: "Passes the checks, with warnings", FAIL: "Fails the checks",
+              ABSENT: "Not checked"}
 PLOT_CONFIG = {"scrollZoom": True, "displaylogo": False, "responsive": True,
                "modeBarButtonsToRemove": ["select2d", "lasso2d", "autoScale2d"]}
 
@@ -31,9 +32,9 @@ main{padding:12px 18px;max-width:2000px;margin:auto}
 @media (max-width:1100px){.top{flex-direction:column}.verdict{flex-basis:auto}}
 h1{font-size:17px;margin:4px 0 6px;word-break:break-all}
 h2{font-size:16px;margin:22px 0 8px}
-.headline{margin:2px 0 8px;color:#3a4450}
 .badge{display:inline-block;padding:3px 10px;border-radius:12px;font-weight:600;color:white;font-size:13px}
 .badge.pass{background:#2e7d32}.badge.warn{background:#b26a00}.badge.fail{background:#c62828}
+.badge.absent{background:#6b7785}
 .facts{margin:6px 0}.facts div{margin:2px 0}.facts b{display:inline-block;min-width:76px}
 table.checks,table.metrics{border-collapse:collapse;width:100%;margin:4px 0 8px;font-size:13px}
 table.checks td,table.metrics td,table.metrics th{border-top:1px solid #e3e7ec;padding:2px 4px;vertical-align:top}
@@ -111,7 +112,7 @@ def verdict_html(v: Verdict, stretch_links: list[str], junction_links: list[str]
                  ) -> str:
     """The verdict block: badge, map name, what was built, the checks, the metrics, the warnings."""
     parts = [f'<span class="badge {v.status}">{esc(BADGE_TEXT[v.status])}</span>',
-             f"<h1>{esc(v.map_name)}</h1>", f'<p class="headline">{esc(v.headline())}</p>', '<div class="facts">',
+             f"<h1>{esc(v.map_name)}</h1>", '<div class="facts">',
              f"<div><b>Built</b> {esc(v.built_line())}</div>"]
     parts.append("<div><b>Lanes</b> " + "; ".join(stretch_links) + "</div>")
     if junction_links:

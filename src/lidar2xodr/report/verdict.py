@@ -98,7 +98,10 @@ class Verdict:
 
     @property
     def status(self) -> str:
-        """fail: the map fails the checks; warn: it passes, but a reader or the build complains; else pass."""
+        """fail: the map fails the checks; warn: it passes, but a reader or the build complains; absent: not
+        checked; else pass."""
+        if self.check_ok is None:
+            return ABSENT
         if self.check_ok is False or any(c.status == FAIL and c.name in ("ASAM checker", "continuity")
                                          for c in self.checks):
             return FAIL
