@@ -125,8 +125,10 @@ def test_a_failed_or_missing_reader_is_never_shown_as_passed(tmp_path: Path) -> 
     status = {c.name.split(" ")[0]: c.status for c in v.checks}
     assert status == {"ASAM": PASS, "continuity": PASS, "SUMO": FAIL, "pyxodr": PASS, "carla": ABSENT}
     assert v.status == WARN, "the map passes its checks, but a reader failed"
+    assert [p.text for p in v.problems] == ["SUMO netconvert 1 failed to read the map: Error: No edges loaded."]
     assert "SUMO netconvert 1 FAILED" in v.headline() and "carla not available" in v.headline()
-    assert make_verdict("m.xodr", odr, _check(ok=False), None, [], 1.75, 2.0).status == FAIL
+    failed = make_verdict("m.xodr", odr, _check(ok=False), None, [], 1.75, 2.0)
+    assert failed.status == FAIL and failed.problems[0].text == "the map fails its checks: 1 ASAM error(s)"
     assert make_verdict("m.xodr", odr, _check(), None, [], 1.75, 2.0).status == PASS
     assert make_verdict("m.xodr", odr, {}, None, [], 1.75, 2.0).status == ABSENT, "not checked is not passed"
 

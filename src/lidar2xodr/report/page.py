@@ -2,8 +2,8 @@
 
 One self-contained file: plotly.js is inlined once, pictures are data URIs, nothing is fetched.
 A link or button with `data-zoom="x,y,span"` zooms the main map there; `index.html#map=ID` opens
-the page zoomed to the close-up ID (e.g. `#map=junction-3`). A script error is shown on the page
-(`#js-error`), not only in the browser's console.
+the page zoomed to the close-up ID (e.g. `#map=junction-3`; `#map=junction`: the first junction).
+A script error is shown on the page (`#js-error`), not only in the browser's console.
 """
 
 from __future__ import annotations
@@ -75,7 +75,8 @@ function zoomTo(x, y, span, scroll) {
 }
 function zoomFromHash() {
   var m = /^#map=(.+)$/.exec(window.location.hash);
-  var el = m && document.getElementById(decodeURIComponent(m[1]));
+  var id = m && decodeURIComponent(m[1]);
+  var el = id && (document.getElementById(id) || document.querySelector('[id^="' + CSS.escape(id) + '-"][data-zoom]'));
   if (el && el.dataset.zoom) { var z = el.dataset.zoom.split(',').map(Number); zoomTo(z[0], z[1], z[2], false); }
 }
 document.addEventListener('click', function (e) {

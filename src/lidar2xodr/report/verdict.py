@@ -344,6 +344,7 @@ def make_verdict(map_name: str, odr: OpenDriveMap, check: dict[str, Any], metric
     """The verdict of a written map, its check result, the comparison (or None) and the build's warnings."""
     roads = sorted((r.id for r in odr.roads.values() if r.junction in ("", "-1")), key=_natural)
     lengths = {r.id: float(r.length) for r in odr.roads.values()}
+    rows = check_rows(check)
     return Verdict(
         map_name=map_name,
         length_m=float(sum(lengths.values())),
@@ -351,8 +352,18 @@ def make_verdict(map_name: str, odr: OpenDriveMap, check: dict[str, Any], metric
         road_lengths=lengths,
         stretches=lane_stretches(odr, min_width, step),
         junctions=junction_infos(odr),
-        checks=check_rows(check),
+        checks=rows,
         check_ok=check.get("ok") if check else None,
         metrics=metric_rows(metrics),
-        problems=problems(warnings),
+        problems=problems(check_problems(check, rows) + list(warnings)),
     )
+
+
+def check_problems(check: dict[str, Any], rows: list[CheckRow]) -> list[str]:
+    """What the checks found wrong, in words: why the map fails them, and each reader that failed."""
+    out = [f"the map fails its checks: {reason}" for reason in check.get("reasons", [])] if check else []
+    for row in rows:
+        if row.status == FAIL and row.name not in ("ASAM checker", "continuity"):
+            first = f": {row.lines[0]}" if row.lines else ""
+            out.append(f"{row.name} failed to read the map{first}")
+    return out
