@@ -73,7 +73,8 @@ def junction_map(path: Path) -> Path:
 
 
 def _reader(name: str, ok: bool, errors: list[str] | None = None) -> dict:
-    return {"available": True, "reader": name, "version": "1", "ok": ok, "errors": errors or [], "warnings": []}
+    return {"available": True, "reader": name, "version": f"Eclipse {name} 1.28.0", "ok": ok, "errors": errors or [],
+            "warnings": []}
 
 
 def _check(ok: bool = True, sumo_errors: list[str] | None = None) -> dict:
@@ -95,7 +96,8 @@ METRICS = {
     "boundaries": {"rmse_m": 0.0731, "p95_m": 0.12, "max_m": 0.2, "mean_m": 0.06, "std_m": 0.04, "eval_length_m": 9.0},
     "centerline": {"rmse_m": 0.0754, "p95_m": 0.13, "max_m": 0.18, "mean_m": 0.06, "std_m": 0.04, "eval_length_m": 3.0},
     "lane_count_agreement": 0.9998, "coverage": 1.0, "lane_width": {"bias_m": -0.002, "std_m": 0.01, "pairs": 9},
-    "lane_graph": {"agreement": 0.75, "links": 4},
+    "lane_graph": {"agreement": 0.75, "breaks": 1, "wrong_m": 150.0,
+                   "breaks_at": [{"x": 350.0, "y": -5.0, "reference_road": "1", "reference_lane": -3}]},
 }
 
 
@@ -125,8 +127,8 @@ def test_a_failed_or_missing_reader_is_never_shown_as_passed(tmp_path: Path) -> 
     status = {c.name.split(" ")[0]: c.status for c in v.checks}
     assert status == {"ASAM": PASS, "continuity": PASS, "SUMO": FAIL, "pyxodr": PASS, "carla": ABSENT}
     assert v.status == WARN, "the map passes its checks, but a reader failed"
-    assert [p.text for p in v.problems] == ["SUMO netconvert 1 failed to read the map: Error: No edges loaded."]
-    assert "SUMO netconvert 1 FAILED" in v.headline() and "carla not available" in v.headline()
+    assert [p.text for p in v.problems] == ["SUMO netconvert 1.28.0 failed to read the map: Error: No edges loaded."]
+    assert "SUMO netconvert 1.28.0 FAILED" in v.headline() and "carla not available" in v.headline()
     failed = make_verdict("m.xodr", odr, _check(ok=False), None, [], 1.75, 2.0)
     assert failed.status == FAIL and failed.problems[0].text == "the map fails its checks: 1 ASAM error(s)"
     assert make_verdict("m.xodr", odr, _check(), None, [], 1.75, 2.0).status == PASS
@@ -137,7 +139,10 @@ def test_metrics_come_most_telling_first_with_the_lane_graph(tmp_path: Path) -> 
     odr = OpenDriveMap.load(entry_map(tmp_path / "entry.xodr"))
     rows = dict(make_verdict("m.xodr", odr, _check(), METRICS, [], 1.75, 2.0).metrics)
     assert rows["boundaries RMSE"].startswith("0.073 m") and rows["centre line RMSE"].startswith("0.075 m")
-    assert rows["lane count agreement"] == "100.0 %" and rows["lane graph agreement"] == "75.0 %"
+    assert rows["lane count agreement"] == "100.0 %"
+    assert rows["lane graph agreement"] == "75.0 % (1 break, 150 m wrong)"
+    (brk,) = make_verdict("m.xodr", odr, _check(), METRICS, [], 1.75, 2.0).problems
+    assert brk.points == [(350.0, -5.0)] and "reference road 1 lane -3" in brk.text
 
 
 def test_warnings_keep_the_stretches_of_road_they_name() -> None:
@@ -183,7 +188,7 @@ def test_the_page_names_the_users_map_shows_each_number_once_and_is_reproducible
     assert f"<h1>{map_path}</h1>" in text
     assert text.index('id="verdict"') < text.index('id="map"') < text.index('id="raw"')
     assert text.count("<th>boundaries.rmse_m</th>") == 1, "the metrics appear once, in the raw numbers"
-    assert ">failed<" in text and ">not available<" in text and "SUMO netconvert 1 FAILED" in text
+    assert ">failed<" in text and ">not available<" in text and "SUMO netconvert 1.28.0 FAILED" in text
     assert text.count('class="closeup"') == 1, "one close-up: the lane-count change"
     assert 'id="along-road"' in text and "https://" not in text.split("<main>")[1]
     again = _write(tmp_path, "again", map_path, reference=map_path)

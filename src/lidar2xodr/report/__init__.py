@@ -175,6 +175,7 @@ def _problem_links(verdict: Verdict, model: LaneModel, span_min: float) -> list[
                 xy = np.column_stack([np.interp(q, s, ref[:, 0]), np.interp(q, s, ref[:, 1])])
                 label = f"s {s0:.0f} m" if s1 == s0 else f"s {s0:.0f}-{s1:.0f} m"
                 links.append(page.zoom_link(label, *_box_zoom(xy, span_min)))
+        links += [page.zoom_link("show", x, y, span_min) for x, y in p.points]
         out.append(links)
     return out
 

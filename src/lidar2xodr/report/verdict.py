@@ -21,6 +21,7 @@ from lidar2xodr.evaluation import DRIVING_TYPES
 from lidar2xodr.opendrive import OpenDriveMap
 
 PASS, WARN, FAIL, ABSENT = "pass", "warn", "fail", "absent"
+_VERSION = re.compile(r"\d+(?:\.\d+)+")
 KM_UNITS_FROM_M = 2000.0  # roads at least this long give their stretches in km, shorter ones in m
 _STATIONS = re.compile(r"\bs (\d+(?:\.\d+)?(?:-\d+(?:\.\d+)?)?(?:, \d+(?:\.\d+)?(?:-\d+(?:\.\d+)?)?)*) m\b")
 
@@ -79,6 +80,7 @@ class Problem:
 
     text: str
     stretches: list[tuple[float, float]] = field(default_factory=list)
+    points: list[tuple[float, float]] = field(default_factory=list)  # world x, y where it is
 
 
 @dataclass
@@ -272,7 +274,8 @@ def _reader_row(key: str, rd: dict[str, Any]) -> CheckRow:
     if not rd.get("available", True):
         return CheckRow(name, ABSENT, rd.get("note", "not installed: not checked"))
     errors, warnings = list(rd.get("errors", [])), list(rd.get("warnings", []))
-    version = f" {rd['version']}" if rd.get("version") else ""
+    number = _VERSION.search(str(rd.get("version", "")))
+    version = f" {number.group(0)}" if number else ""
     status = FAIL if errors else WARN if warnings else FAIL if rd.get("ok") is False else PASS
     detail = f"{len(errors)} error(s), {len(warnings)} warning(s)"
     facts = [f"{k.replace('_', ' ')} {rd[k]}" for k in ("roads", "junctions", "edges", "lanes", "connections",
@@ -314,9 +317,12 @@ def metric_rows(metrics: dict[str, Any] | None) -> list[tuple[str, str]]:
 
 
 def _graph_text(graph: dict[str, Any]) -> str:
-    for key in ("agreement", "f1", "score"):
-        if isinstance(graph.get(key), int | float):
-            return f"{100.0 * graph[key]:.1f} %"
+    if isinstance(graph.get("agreement"), int | float):
+        text = f"{100.0 * graph['agreement']:.1f} %"
+        if isinstance(graph.get("breaks"), int):
+            text += f" ({graph['breaks']} break{'s' * (graph['breaks'] != 1)}"
+            text += f", {graph['wrong_m']:.0f} m wrong)" if isinstance(graph.get("wrong_m"), int | float) else ")"
+        return text
     scalars = [f"{k.replace('_', ' ')} {v:.3g}" if isinstance(v, float) else f"{k.replace('_', ' ')} {v}"
                for k, v in graph.items() if isinstance(v, int | float | str)]
     return ", ".join(scalars[:6]) or "see the raw numbers"
@@ -355,8 +361,19 @@ def make_verdict(map_name: str, odr: OpenDriveMap, check: dict[str, Any], metric
         checks=rows,
         check_ok=check.get("ok") if check else None,
         metrics=metric_rows(metrics),
-        problems=problems(check_problems(check, rows) + list(warnings)),
+        problems=problems(check_problems(check, rows) + list(warnings)) + graph_problems(metrics),
     )
+
+
+def graph_problems(metrics: dict[str, Any] | None) -> list[Problem]:
+    """Each place where the generated lanes stop routing a reference lane (`compare`'s lane graph breaks)."""
+    graph = (metrics or {}).get("lane_graph")
+    if not isinstance(graph, dict):
+        return []
+    return [Problem(f"lane graph break: the generated lanes do not route reference road "
+                    f"{b.get('reference_road', '?')} lane {b.get('reference_lane', '?')} on from here",
+                    points=[(float(b["x"]), float(b["y"]))])
+            for b in graph.get("breaks_at", []) if isinstance(b, dict) and "x" in b and "y" in b]
 
 
 def check_problems(check: dict[str, Any], rows: list[CheckRow]) -> list[str]:
