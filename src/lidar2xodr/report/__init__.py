@@ -20,6 +20,7 @@ from plotly.offline import get_plotlyjs
 
 from lidar2xodr.config import Config
 from lidar2xodr.data import LaneModel, MarkingCloud
+from lidar2xodr.errors import InputError
 from lidar2xodr.fileio import atomic_dir
 from lidar2xodr.opendrive import OpenDriveMap
 from lidar2xodr.report import mapview, page
@@ -52,10 +53,15 @@ def write_report(
     """
     cfg = config or Config()
     map_path = Path(map_path)
-    odr = OpenDriveMap.load(map_path)
+    warnings = list(model.warnings if warnings is None else warnings)
+    try:
+        odr = OpenDriveMap.load(map_path)
+    except InputError as exc:  # written with --allow-invalid: the verdict and the numbers still help
+        odr = OpenDriveMap(map_path, (1, 8), None, {}, {})
+        warnings.insert(0, f"the written map cannot be read back, so it is not drawn: {exc.problem}")
     check = {**check, "file": str(map_path)} if check else {}
-    verdict = make_verdict(str(map_path), odr, check, metrics, list(model.warnings if warnings is None else warnings),
-                           cfg.evaluation.lane_count_min_width_m, cfg.report.map_step_m)
+    verdict = make_verdict(str(map_path), odr, check, metrics, warnings, cfg.evaluation.lane_count_min_width_m,
+                           cfg.report.map_step_m)
     ref_odr = OpenDriveMap.load(reference) if reference else None
     html_text = _page(verdict, odr, ref_odr, cloud, model, map_path, reference, scenario, cfg,
                       _raw_groups(summary, timings, check, metrics))
