@@ -231,5 +231,5 @@ def test_headless_chromium_draws_the_map_without_errors(tmp_path: Path, make: ob
 def test_a_map_that_cannot_be_read_back_still_gets_its_verdict(tmp_path: Path) -> None:
     broken = tmp_path / "broken.xodr"
     broken.write_text("<OpenDRIVE><road id='1' length='x'/></OpenDRIVE>")
-    text = _write(tmp_path, "report", broken).read_text(encoding="utf-8")
+    text = _write(tmp_path, "report", broken, reference=entry_map(tmp_path / "truth.xodr")).read_text(encoding="utf-8")
     assert "the written map cannot be read back, so it is not drawn" in text and 'id="raw"' in text

@@ -110,7 +110,7 @@ def _page(verdict: Verdict, odr: OpenDriveMap, ref_odr: OpenDriveMap | None, clo
         "</div></div>",
     ]
     sections.append(_closeups_html(layers, found, rc.max_closeups))
-    if reference is not None:
+    if reference is not None and odr.roads:
         sections.append(_along_road_html(map_path, reference, cfg))
     if scenario:
         sections.append(_scenario_html(scenario, map_path))
@@ -122,8 +122,8 @@ def _page(verdict: Verdict, odr: OpenDriveMap, ref_odr: OpenDriveMap | None, clo
         f"<style>{page.CSS}</style><script>{page.HEAD_JS}</script>",
         f"<script>{get_plotlyjs()}</script><script>{page.PAGE_JS}</script></head><body><main>",
         '<div id="js-error" hidden></div>',
-        "<noscript><div id='js-error'>The map and plots need JavaScript; the verdict and the numbers do not."
-        "</div></noscript>",
+        "<noscript><p class='note'>The map and plots need JavaScript; the verdict and the numbers do not.</p>"
+        "</noscript>",
         *sections,
         "</main></body></html>",
     ])
