@@ -233,3 +233,14 @@ def test_a_map_that_cannot_be_read_back_still_gets_its_verdict(tmp_path: Path) -
     broken.write_text("<OpenDRIVE><road id='1' length='x'/></OpenDRIVE>")
     text = _write(tmp_path, "report", broken, reference=entry_map(tmp_path / "truth.xodr")).read_text(encoding="utf-8")
     assert "the written map cannot be read back, so it is not drawn" in text and 'id="raw"' in text
+
+
+def test_build_with_a_missing_reference_stops_before_building(tmp_path: Path) -> None:
+    import sys
+
+    missing = tmp_path / "truth.xodr"
+    cmd = [sys.executable, "-m", "lidar2xodr.cli", "build", str(tmp_path), "-o", str(tmp_path / "m.xodr"),
+           "--reference", str(missing)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, check=False)
+    assert proc.returncode == 2 and "reference map not found" in proc.stderr and str(missing) in proc.stderr
+    assert "Traceback" not in proc.stderr and not (tmp_path / "m.xodr").exists()
