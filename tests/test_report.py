@@ -182,16 +182,19 @@ def _write(tmp_path: Path, name: str, map_path: Path, **kwargs: object) -> Path:
 
 def test_the_page_names_the_users_map_shows_each_number_once_and_is_reproducible(tmp_path: Path) -> None:
     map_path = entry_map(tmp_path / "entry.xodr")
-    page = _write(tmp_path, "report", map_path, reference=map_path)
+    staged = tmp_path / ".lidar2xodr-stage" / "entry.xodr"  # where a build writes it before moving it into place
+    staged.parent.mkdir()
+    shutil.copy(map_path, staged)
+    page = _write(tmp_path, "report", staged, reference=map_path, final_path=map_path)
     text = page.read_text(encoding="utf-8")
-    assert ".lidar2xodr-" not in text, "the temporary folder the map was checked in is not its name"
+    assert ".lidar2xodr-" not in text, "the temporary folders the map was written and checked in are not its name"
     assert f"<h1>{map_path}</h1>" in text
     assert text.index('id="verdict"') < text.index('id="map"') < text.index('id="raw"')
     assert text.count("<th>boundaries.rmse_m</th>") == 1, "the metrics appear once, in the raw numbers"
     assert ">failed<" in text and ">not available<" in text and "SUMO netconvert 1.28.0 FAILED" in text
     assert text.count('class="closeup"') == 1, "one close-up: the lane-count change"
     assert 'id="along-road"' in text and "https://" not in text.split("<main>")[1]
-    again = _write(tmp_path, "again", map_path, reference=map_path)
+    again = _write(tmp_path, "again", staged, reference=map_path, final_path=map_path)
     assert again.read_bytes() == page.read_bytes()
 
 

@@ -172,7 +172,7 @@ class BuildPipeline:
                                                   check=verdict, timings=self.timings, summary=result.summary,
                                                   scenario=scenario_info, metrics=metrics,
                                                   reference=self.reference, warnings=result.warnings,
-                                                  config=self.config)
+                                                  config=self.config, final_path=self.out)
         return result
 
     def _scenario(self, cloud: MarkingCloud) -> dict[str, Any]:

@@ -44,23 +44,26 @@ def write_report(
     reference: Path | None = None,
     warnings: list[str] | None = None,
     config: Config | None = None,
+    final_path: Path | None = None,
 ) -> Path:
     """Write `out_dir/index.html` and `summary.json`, atomically (the folder appears whole).
 
-    `map_path` is the map where the user asked for it (the name the page shows); `warnings` are the
-    build's (default: the lane model's); `reference` draws the reference map in and plots the error
-    along the road.
+    `map_path` is the written map to read back; `final_path` is where the user asked for it, the
+    name the page shows (default: `map_path`; a build that stages its outputs passes both).
+    `warnings` are the build's (default: the lane model's); `reference` draws the reference map in
+    and plots the error along the road.
     """
     cfg = config or Config()
     map_path = Path(map_path)
+    shown = Path(final_path) if final_path is not None else map_path
     warnings = list(model.warnings if warnings is None else warnings)
     try:
         odr = OpenDriveMap.load(map_path)
     except InputError as exc:  # written with --allow-invalid: the verdict and the numbers still help
         odr = OpenDriveMap(map_path, (1, 8), None, {}, {})
         warnings.insert(0, f"the written map cannot be read back, so it is not drawn: {exc.problem}")
-    check = {**check, "file": str(map_path)} if check else {}
-    verdict = make_verdict(str(map_path), odr, check, metrics, warnings, cfg.evaluation.lane_count_min_width_m,
+    check = {**check, "file": str(shown)} if check else {}
+    verdict = make_verdict(str(shown), odr, check, metrics, warnings, cfg.evaluation.lane_count_min_width_m,
                            cfg.report.map_step_m)
     ref_odr = OpenDriveMap.load(reference) if reference else None
     html_text = _page(verdict, odr, ref_odr, cloud, model, map_path, reference, scenario, cfg,
@@ -117,7 +120,7 @@ def _page(verdict: Verdict, odr: OpenDriveMap, ref_odr: OpenDriveMap | None, clo
     sections.append(page.raw_numbers_html(raw))
     return "\n".join([
         "<!doctype html><html lang='en'><head><meta charset='utf-8'>",
-        f"<title>lidar2xodr report: {page.esc(map_path.name)}</title>",
+        f"<title>lidar2xodr report: {page.esc(Path(verdict.map_name).name)}</title>",
         f'<meta name="description" content="{page.esc(verdict.headline())}">',
         f"<style>{page.CSS}</style><script>{page.HEAD_JS}</script>",
         f"<script>{get_plotlyjs()}</script><script>{page.PAGE_JS}</script></head><body><main>",
