@@ -28,7 +28,7 @@ $(QC)/.stamp: requirements-qc.txt
 setup: $(VENV)/.stamp $(QC)/.stamp
 
 demo: setup
-	$(BIN)/lidar2xodr demo --out demo-out
+	$(BIN)/lidar2xodr demo -o demo-out
 
 test: setup
 	$(BIN)/python -m pytest -q
