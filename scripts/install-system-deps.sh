@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Debian packages the project needs: libusb for Open3D, SUMO's netconvert as an independent
-# OpenDRIVE reader in the tests. Installs only what is missing.
+# OpenDRIVE reader in the tests, headless Chromium to render the build report in its test.
+# Installs only what is missing.
 set -euo pipefail
-pkgs=(libusb-1.0-0 sumo)
+pkgs=(libusb-1.0-0 sumo chromium)
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

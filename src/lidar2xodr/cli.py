@@ -243,6 +243,8 @@ def build(
         None, "--keep-intermediate", help="Keep markings.ply and lanes.json in this (new or empty) folder."
     ),
     allow_invalid: bool = typer.Option(False, "--allow-invalid", help="Write the map even if it fails check."),
+    reference: Path | None = _opt(None, "--reference", help="A reference .xodr (ground truth): compare with it "
+                                  "and draw it in the report."),
     config: Path | None = ConfigOpt,
     topic: str | None = _opt(None, "--topic", help="PointCloud2 topic of a bag (when it has several)."),
     pose_topic: str | None = _opt(None, "--pose-topic", help="Pose topic of a bag (when it has several)."),
@@ -257,10 +259,12 @@ def build(
     cfg = Config.load(config)
     if odometry:
         cfg = cfg.model_copy(update={"extraction": cfg.extraction.model_copy(update={"odometry": odometry.value})})
+    if reference is not None and not reference.is_file():
+        raise InputError(reference, "reference map not found")
     result = BuildPipeline(
         drive, output, cfg, data_format=data_format.value if data_format else None, report_dir=report,
-        scenario=scenario, keep_intermediate=keep_intermediate, allow_invalid=allow_invalid, console=console,
-        topic=topic, pose_topic=pose_topic, intensity_scale=intensity_scale,
+        scenario=scenario, keep_intermediate=keep_intermediate, allow_invalid=allow_invalid, reference=reference,
+        console=console, topic=topic, pose_topic=pose_topic, intensity_scale=intensity_scale,
     ).run()
     from lidar2xodr.pipeline import print_summary
 

@@ -385,6 +385,25 @@ class ScenarioConfig(_Section):
     drop_off_map: bool = Field(False, description="ours: drop tracks that never touch the map (default: keep, warn)")
 
 
+class ReportConfig(_Section):
+    """The build report: what is drawn, and how much of it, so a 10 km drive's page stays quick to open."""
+
+    map_step_m: float = Field(2.0, gt=0, description="ours: lane borders of the written map sampled this often "
+                              "for the drawing (chord error below 1 cm on radii over 50 m)")
+    max_cloud_points: int = Field(30_000, ge=0, description="ours: at most this many marking points on the map "
+                                  "(evenly thinned beyond; an SVG plot stays responsive up to a few 10k points)")
+    cloud_cell_m: float = Field(0.25, gt=0, description="ours: marking points are thinned to one per cell of this "
+                                "size first (finer than a marking's 0.15 m width adds nothing visible)")
+    closeup_m: float = Field(160.0, gt=0, description="ours: width of a close-up window (a gore with its taper, "
+                             "or a lane that opens over ~100 m, fits in)")
+    max_closeups: int = Field(24, ge=0, description="ours: close-up pictures drawn (all junctions and lane-count "
+                              "changes beyond this are still listed and zoom the main map)")
+    reference_margin_m: float = Field(100.0, ge=0, description="ours: the reference map is drawn only this far "
+                                      "around the generated map (a reference network may be far larger)")
+    lane_hover_step_m: float = Field(25.0, gt=0, description="ours: spacing of the points that name a lane "
+                                     "(road, id, type, width) when the pointer rests on it")
+
+
 class Config(_Section):
     extraction: ExtractionConfig = ExtractionConfig()
     markings: MarkingsConfig = MarkingsConfig()
@@ -392,6 +411,7 @@ class Config(_Section):
     export: ExportConfig = ExportConfig()
     evaluation: EvaluationConfig = EvaluationConfig()
     scenario: ScenarioConfig = ScenarioConfig()
+    report: ReportConfig = ReportConfig()
 
     @classmethod
     def load(cls, path: str | Path | None) -> Config:

@@ -130,8 +130,8 @@ def _windows(model: LaneModel) -> list[float]:
     return [float(c) for c in changes[:_MAX_DETAILS]]
 
 
-def plot_lane_model(cloud: MarkingCloud, model: LaneModel, path: str | Path) -> None:
-    """One picture: the whole drive (top) and up to three detail windows (bottom)."""
+def lane_model_figure(cloud: MarkingCloud, model: LaneModel) -> plt.Figure:
+    """One picture: the whole drive (top) and up to three detail windows (bottom); the caller closes it."""
     details = _windows(model)[:3]
     fig = plt.figure(figsize=(14, 10 if details else 6), dpi=110)
     grid = fig.add_gridspec(2 if details else 1, max(len(details), 1))
@@ -151,6 +151,12 @@ def plot_lane_model(cloud: MarkingCloud, model: LaneModel, path: str | Path) -> 
             _draw_detail(axd, cloud, model, frame, s0)
             axd.set_title(f"around s = {s0:.0f} m", fontsize=9)
     fig.tight_layout()
+    return fig
+
+
+def plot_lane_model(cloud: MarkingCloud, model: LaneModel, path: str | Path) -> None:
+    """`lane_model_figure` written to `path` as PNG, atomically."""
+    fig = lane_model_figure(cloud, model)
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, format="png")
     plt.close(fig)

@@ -214,7 +214,9 @@ class BuildPipeline:
             with self._stage("report"):
                 result.report_path = write_report(self.report_dir, cloud=cloud, model=model, map_path=staged(self.out),
                                                   check=verdict, timings=self.timings, summary=result.summary,
-                                                  scenario=scenario_info, metrics=metrics)
+                                                  scenario=scenario_info, metrics=metrics,
+                                                  reference=self.reference, warnings=result.warnings,
+                                                  config=self.config, final_path=self.out)
         return result
 
     def _scenario(self, cloud: MarkingCloud) -> dict[str, Any]:
