@@ -293,9 +293,13 @@ def _verdict_line(verdict: dict[str, Any]) -> str:
         f"ASAM errors {asam.get('errors', '?')}, largest leap {cont.get('max_leap_m', float('nan')):.4f} m, "
         f"largest kink {cont.get('max_kink_rad', float('nan')):.4f} rad"
     )
-    for rd in verdict.get("readers", {}).values():
-        if rd.get("available"):
-            line += f"; {rd['reader']}: {len(rd['warnings'])} warning(s), {len(rd['errors'])} error(s)"
+    for name, rd in verdict.get("readers", {}).items():
+        reader = rd.get("reader", name)
+        if not rd.get("available"):
+            line += f"; {reader}: not available"
+            continue
+        state = "reads it" if rd.get("ok", not rd.get("errors")) else "FAILED to read it"
+        line += f"; {reader}: {state}, {len(rd.get('warnings', []))} warning(s), {len(rd.get('errors', []))} error(s)"
     return line
 
 
@@ -311,7 +315,8 @@ def print_summary(result: BuildResult, console: Console) -> None:
     table.add_row("marking points / scans", f"{s.get('marking_points', 0):,} / {s.get('scans', 0):,}")
     for stage, sec in result.timings.items():
         table.add_row(f"time {stage}", f"{sec:.2f} s")
-    table.add_row("check", ("ok: " if result.check.get("ok") else "FAILED: ") + _verdict_line(result.check))
+    # the verdict is the ASAM checker's and continuity's; each reader says for itself whether it read the map
+    table.add_row("check", ("valid map: " if result.check.get("ok") else "INVALID map: ") + _verdict_line(result.check))
     metrics = s.get("metrics")
     if metrics:
         table.add_row("boundaries RMSE / mean / sigma",
