@@ -284,6 +284,18 @@ def test_read_only_target_is_exit_2(tmp_path: Path, assets: dict[str, Path]) -> 
         assert "read-only" in line
 
 
+def test_immutable_target_is_exit_2(tmp_path: Path, assets: dict[str, Path]) -> None:
+    target = tmp_path / "metrics.json"
+    target.write_text("the user's")
+    if subprocess.run(["chattr", "+i", str(target)], capture_output=True).returncode != 0:
+        pytest.skip("chattr +i is not available here (needs root and a file system with attributes)")
+    try:
+        line = hostile(["compare", assets["map"], assets["map"], "--json", target], tmp_path, names=target)
+        assert "permission denied" in line
+    finally:
+        subprocess.run(["chattr", "-i", str(target)], check=False)
+
+
 def test_output_on_procfs_is_exit_2(tmp_path: Path, assets: dict[str, Path]) -> None:
     hostile(["compare", assets["map"], assets["map"], "--json", "/proc/metrics.json"], tmp_path,
             names="/proc/metrics.json")

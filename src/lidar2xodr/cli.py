@@ -391,6 +391,7 @@ def extract(
     from lidar2xodr.config import Config
     from lidar2xodr.datasets import open_dataset
     from lidar2xodr.extraction import ExtractionReport, extract_markings
+    from lidar2xodr.fileio import staged_outputs
     from lidar2xodr.markings_io import save_markings
 
     _outputs([output])
@@ -404,7 +405,8 @@ def extract(
                   TimeRemainingColumn(), console=console, transient=True, disable=not console.is_terminal) as bar:
         task = bar.add_task("extract", total=len(dataset))
         cloud = extract_markings(dataset, cfg, progress=lambda n: bar.advance(task, n), report=rep)
-    save_markings(cloud, output)
+    with staged_outputs():  # the cloud and its three sidecars appear together
+        save_markings(cloud, output)
     skipped = f", {len(rep.bad_scans)} skipped" if rep.bad_scans else ""
     skipped += f", {rep.empty_scans} empty" if rep.empty_scans else ""
     dropped = f", {rep.dropped_points:,} non-finite points dropped" if rep.dropped_points else ""
