@@ -13,8 +13,8 @@ from typer.testing import CliRunner
 from lidar2xodr.cli import app
 from lidar2xodr.config import Config
 from lidar2xodr.demo_road import ADDED_LANE, LANE_WIDTH, write_demo_road
-from lidar2xodr.errors import InputError
-from lidar2xodr.fileio import atomic_dir, atomic_path
+from lidar2xodr.errors import InputError, OutputError
+from lidar2xodr.fileio import atomic_dir, atomic_path, staged, staged_outputs
 
 runner = CliRunner()
 
@@ -135,3 +135,44 @@ def test_atomic_outputs_get_normal_permissions(tmp_path: Path) -> None:
     with atomic_path(tmp_path / "m.xodr") as tmp:
         tmp.write_text("x")
     assert stat.S_IMODE((tmp_path / "m.xodr").stat().st_mode) == 0o666 & ~mask
+
+
+def test_staged_outputs_are_all_or_nothing(tmp_path: Path) -> None:
+    """Inside staged_outputs, outputs appear together at the end, or none of them (and no new folder)."""
+    (tmp_path / "map.xodr").write_text("old")
+    with pytest.raises(RuntimeError), staged_outputs():
+        with atomic_path(tmp_path / "map.xodr") as tmp:
+            tmp.write_text("new")
+        assert (tmp_path / "map.xodr").read_text() == "old"
+        assert staged(tmp_path / "map.xodr").read_text() == "new"
+        assert staged(tmp_path / "map.xodr").name == "map.xodr"
+        with atomic_dir(tmp_path / "new" / "report") as tmp:
+            (tmp / "index.html").write_text("x")
+        raise RuntimeError("the scenario failed")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["map.xodr"]
+    assert (tmp_path / "map.xodr").read_text() == "old"
+    with staged_outputs():
+        with atomic_path(tmp_path / "map.xodr") as tmp:
+            tmp.write_text("new")
+        with atomic_dir(tmp_path / "report") as tmp:
+            (tmp / "index.html").write_text("x")
+    assert (tmp_path / "map.xodr").read_text() == "new" and (tmp_path / "report" / "index.html").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["map.xodr", "report"]
+
+
+def test_atomic_dir_replaces_only_its_own_files(tmp_path: Path) -> None:
+    rep = tmp_path / "report"
+    with atomic_dir(rep) as tmp:
+        (tmp / "a.png").write_text("1")
+        (tmp / "b.png").write_text("1")
+    (rep / "mine.txt").write_text("the user's")
+    with atomic_dir(rep) as tmp:
+        (tmp / "a.png").write_text("2")
+    assert sorted(p.name for p in rep.iterdir()) == [".lidar2xodr-report", "a.png", "mine.txt"]
+    assert (rep / "a.png").read_text() == "2" and (rep / "mine.txt").read_text() == "the user's"
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "thesis.tex").write_text("x")
+    with pytest.raises(OutputError, match="not a lidar2xodr report"), atomic_dir(other):
+        pass
+    assert [p.name for p in other.iterdir()] == ["thesis.tex"]

@@ -26,11 +26,12 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+import lidar2xodr
 from lidar2xodr.cli import app
 from lidar2xodr.demo_road import write_demo_road
 
 runner = CliRunner(mix_stderr=False)
-SRC = Path(__file__).resolve().parents[1] / "src"
+SRC = Path(lidar2xodr.__file__).resolve().parents[1]  # the subprocesses run the code under test
 
 
 # --------------------------------------------------------------------------------------------
@@ -283,6 +284,18 @@ def test_read_only_target_is_exit_2(tmp_path: Path, assets: dict[str, Path]) -> 
         assert "read-only" in line
 
 
+def test_immutable_target_is_exit_2(tmp_path: Path, assets: dict[str, Path]) -> None:
+    target = tmp_path / "metrics.json"
+    target.write_text("the user's")
+    if subprocess.run(["chattr", "+i", str(target)], capture_output=True).returncode != 0:
+        pytest.skip("chattr +i is not available here (needs root and a file system with attributes)")
+    try:
+        line = hostile(["compare", assets["map"], assets["map"], "--json", target], tmp_path, names=target)
+        assert "permission denied" in line
+    finally:
+        subprocess.run(["chattr", "-i", str(target)], check=False)
+
+
 def test_output_on_procfs_is_exit_2(tmp_path: Path, assets: dict[str, Path]) -> None:
     hostile(["compare", assets["map"], assets["map"], "--json", "/proc/metrics.json"], tmp_path,
             names="/proc/metrics.json")
@@ -428,6 +441,7 @@ def _build_until_checker(assets: dict[str, Path], out: Path) -> tuple[subprocess
 def test_sigterm_and_sigint_leave_nothing(sig: int, code: int, tmp_path: Path, assets: dict[str, Path]) -> None:
     out = tmp_path / "out"
     out.mkdir()
+    (out / "map.xodr").write_text("the map of an earlier build")
     proc, children = _build_until_checker(assets, out)
     proc.send_signal(sig)
     try:
@@ -437,7 +451,8 @@ def test_sigterm_and_sigint_leave_nothing(sig: int, code: int, tmp_path: Path, a
     assert proc.returncode == code, err
     assert "Traceback" not in err and len([ln for ln in err.splitlines() if ln.strip()]) == 1, err
     assert _wait(lambda: not any(_alive(k) for k in children), 10), "a child outlived the build"
-    assert list(out.iterdir()) == []
+    assert [p.name for p in out.iterdir()] == ["map.xodr"]
+    assert (out / "map.xodr").read_text() == "the map of an earlier build"
 
 
 def test_sigkill_takes_the_checker_along_and_the_next_run_cleans_up(tmp_path: Path,
@@ -446,17 +461,20 @@ def test_sigkill_takes_the_checker_along_and_the_next_run_cleans_up(tmp_path: Pa
 
     out = tmp_path / "out"
     out.mkdir()
+    (out / "map.xodr").write_text("the map of an earlier build")
     proc, children = _build_until_checker(assets, out)
     pid = proc.pid
     proc.kill()
     proc.communicate(timeout=30)
     assert _wait(lambda: not any(_alive(k) for k in children), 10), "the checker outlived a SIGKILL"
-    leftovers = [p.name for p in out.iterdir()]
+    assert (out / "map.xodr").read_text() == "the map of an earlier build"
+    leftovers = [p.name for p in out.iterdir() if p.name != "map.xodr"]
     assert leftovers and all(name.startswith(f".lidar2xodr-{pid}-") for name in leftovers)
-    qc = [p for p in Path(tempfile.gettempdir()).glob(f"lidar2xodr-qc-{pid}-*")]
+    qc = list(Path(tempfile.gettempdir()).glob(f"lidar2xodr-qc-{pid}-*"))
+    assert qc, "the killed run left no checker folder to clean (was the checker running?)"
     res = runner.invoke(app, ["compare", str(assets["map"]), str(assets["map"]), "--json", str(out / "m.json")])
     assert res.exit_code == 0, res.output
-    assert [p.name for p in out.iterdir()] == ["m.json"]
+    assert sorted(p.name for p in out.iterdir()) == ["m.json", "map.xodr"]
     assert not any(p.exists() for p in qc)
 
 
@@ -479,6 +497,7 @@ def test_children_die_with_a_killed_parent(kind: str, tmp_path: Path) -> None:
         time.sleep(60)
     """)
     proc = subprocess.Popen([sys.executable, "-c", script], env=_env(), stdout=subprocess.PIPE, text=True)
+    child = None
     try:
         assert proc.stdout is not None
         child = int(proc.stdout.readline())
@@ -488,8 +507,9 @@ def test_children_die_with_a_killed_parent(kind: str, tmp_path: Path) -> None:
         assert _wait(lambda: not _alive(child), 10), f"the {kind} outlived its parent"
     finally:
         proc.kill()
-        with contextlib.suppress(OSError):
-            os.kill(child, signal.SIGKILL)
+        if child is not None:
+            with contextlib.suppress(OSError):
+                os.kill(child, signal.SIGKILL)
 
 
 def test_stale_temp_of_a_live_process_is_kept(tmp_path: Path, assets: dict[str, Path]) -> None:

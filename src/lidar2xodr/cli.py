@@ -126,6 +126,16 @@ def _warnings_as_one_line() -> Iterator[None]:
                 warn(f"{sum(seen.values())} library warning(s) ({first}{more}); they did not stop the run")
 
 
+@contextlib.contextmanager
+def _busy(what: str) -> Iterator[None]:
+    """A transient spinner for a stage without a count, on a terminal only (nothing in a pipe or log)."""
+    if not console.is_terminal:
+        yield
+        return
+    with console.status(escape(what)):
+        yield
+
+
 def _environment_problem(exc: OSError) -> str:
     where = exc.filename if exc.filename is not None else "output"
     return f"{where}: {exc.strerror or exc}"
@@ -206,7 +216,9 @@ def compare(
     from lidar2xodr.evaluation import compare_maps, print_metrics
 
     _outputs([json_out])
-    metrics = compare_maps(generated, reference, Config.load(config).evaluation)
+    cfg = Config.load(config).evaluation
+    with _busy(f"comparing {generated} with {reference}"):
+        metrics = compare_maps(generated, reference, cfg)
     if json_out:
         write_json(json_out, metrics)
     print_metrics(metrics, out)
@@ -222,7 +234,8 @@ def check(
     from lidar2xodr.check import check_file, print_check
 
     _outputs([json_out])
-    result = check_file(path)
+    with _busy(f"checking {path}"):
+        result = check_file(path)
     if json_out:
         write_json(json_out, result)
     print_check(result, out)
@@ -311,7 +324,7 @@ def scenario(
     ego = ego if ego is not None else tracks.ego
     if ego is None:
         raise InputError(drive, "no ego trajectory: the drive has no poses.csv; pass --ego POSES.csv")
-    with staged_outputs():
+    with staged_outputs(), _busy(f"writing {out_path}"):
         summary = export_scenario(ego, tracks, map_path, out_path, cfg)
         if json_out:
             write_json(json_out, summary.to_dict())
@@ -382,6 +395,7 @@ def extract(
     from lidar2xodr.config import Config
     from lidar2xodr.datasets import open_dataset
     from lidar2xodr.extraction import ExtractionReport, extract_markings
+    from lidar2xodr.fileio import staged_outputs
     from lidar2xodr.markings_io import save_markings
 
     _outputs([output])
@@ -395,7 +409,8 @@ def extract(
                   TimeRemainingColumn(), console=console, transient=True, disable=not console.is_terminal) as bar:
         task = bar.add_task("extract", total=len(dataset))
         cloud = extract_markings(dataset, cfg, progress=lambda n: bar.advance(task, n), report=rep)
-    save_markings(cloud, output)
+    with staged_outputs():  # the cloud and its three sidecars appear together
+        save_markings(cloud, output)
     skipped = f", {len(rep.bad_scans)} skipped" if rep.bad_scans else ""
     skipped += f", {rep.empty_scans} empty" if rep.empty_scans else ""
     dropped = f", {rep.dropped_points:,} non-finite points dropped" if rep.dropped_points else ""
@@ -433,9 +448,10 @@ def lanes(
     cloud = load_markings(markings)
     if len(cloud.xyz) == 0:
         raise InputError(markings, "the marking cloud is empty")
-    candidates = find_candidates(cloud.xyz, cfg.markings)
-    model = build_lane_model(cloud, candidates, cfg.lanes, where=str(markings))
-    network = build_network(cloud, model, cfg.lanes, cfg.markings, where=str(markings))
+    with _busy(f"lanes from {markings}"):
+        candidates = find_candidates(cloud.xyz, cfg.markings)
+        model = build_lane_model(cloud, candidates, cfg.lanes, where=str(markings))
+        network = build_network(cloud, model, cfg.lanes, cfg.markings, where=str(markings))
     pictures: list[Path] = []
     with staged_outputs():
         save_network(network, output)
@@ -475,7 +491,8 @@ def export(
     cfg = Config.load(config)
     model = load_network(lanes_json)
     planes = load_markings(markings).planes if markings else None
-    summary, verdict = write_checked_map(model, planes, cfg, output, allow_invalid, where=lanes_json)
+    with _busy(f"exporting and checking {output}"):
+        summary, verdict = write_checked_map(model, planes, cfg, output, allow_invalid, where=lanes_json)
     out.print(f"wrote {output}: {summary.length_m:.0f} m, {summary.pieces} paramPoly3 pieces, "
               f"{summary.lane_sections} lane sections; check: {_verdict_line(verdict)}", highlight=False, markup=False)
 

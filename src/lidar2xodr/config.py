@@ -42,22 +42,24 @@ class ExtractionConfig(_Section):
     odometry: Literal["auto", "gnss", "lidar"] = Field("auto", description="auto = GNSS poses when present")
     seed: int = Field(0, ge=0, description="seed of every random choice (RANSAC)")
     ground_below_m: float = Field(0.3, ge=0, description="ours: points this far below the plane still count as road "
-                                  "(range noise, crown); deeper ones are ditches or multipath")
+                                             "(range noise, crown); deeper ones are ditches or multipath")
     ransac_range_m: float = Field(40.0, gt=0, description="ours: the plane is fitted to ground within this radius "
-                                  "(local plane; far points are sparse and bend with the road)")
-    ransac_max_tilt_deg: float = Field(15.0, gt=0, le=90, description="ours: plane normals tilted more from vehicle "
-                                                          "z are rejected")
+                                              "(local plane; far points are sparse and bend with the road)")
+    ransac_max_tilt_deg: float = Field(15.0, gt=0, le=90, description="ours: plane normals tilted more from vehicle z "
+                                                          "are rejected")
     ransac_sample_points: int = Field(1000, ge=3, description="ours: points that score the RANSAC hypotheses")
     auto_threshold_scans: int = Field(10, ge=1, description="ours: scans whose ground intensities set the auto "
                                                 "threshold")
     auto_threshold_range_m: float = Field(40.0, gt=0, description="ours: ground points within this radius feed it")
-    auto_threshold_mad_k: float = Field(3.0, gt=0, description="ours: the auto threshold is at least median + k robust "
-                                        "sigmas (MAD) of the road intensities: paint is an outlier of the road")
+    auto_threshold_mad_k: float = Field(3.0, gt=0, description="ours: the auto threshold is at least median + k "
+                                                   "robust sigmas (MAD) of the road intensities: paint is an outlier "
+                                                   "of the road")
     pose_time_tolerance_s: float = Field(0.1, ge=0, description="ours: point times may exceed the poses by this much")
     odometry_voxel_m: float = Field(1.0, gt=0, description="ours: KISS-ICP voxel size (highway structure is coarse)")
     odometry_max_range_m: float = Field(200.0, gt=0, description="ours: KISS-ICP uses points within this radius of a "
-                                        "forward-looking sensor (far trees, posts and signs fix its heading: 80 m "
-                                        "drifted 3-10 deg/km on simulated motorways, 200 m 0.1-0.4 deg/km)")
+                                                     "forward-looking sensor (far trees, posts and signs fix its "
+                                                     "heading: 80 m drifted 3-10 deg/km on simulated motorways, 200 m "
+                                                     "0.1-0.4 deg/km)")
     odometry_surround_range_m: float = Field(80.0, gt=0, description="ours: the same for a sensor whose scans cover "
                                              "more than half the horizon (structure all around fixes the heading)")
     odometry_min_height_m: float = Field(-0.3, description="ours: extraction hands the odometry the points this far "
@@ -91,73 +93,76 @@ class ExtractionConfig(_Section):
         "first scans (Otsu / median + k MAD)")
     local_neighbors: int = Field(16, ge=1, description="ours: road-surface samples around a point that judge it")
     local_cell_m: float = Field(0.25, gt=0, description="ours: road-surface samples are taken one per cell of this "
-                                "size, so dense near-range returns on a wide line cannot be their own background")
-    local_contrast_k: float = Field(4.0, gt=0, description="ours: paint is this many robust sigmas (MAD) brighter than "
-                                    "the median of its surroundings ...")
-    local_min_contrast: float = Field(0.08, ge=0, le=1, description="ours: ... and at least this much brighter "
-                                                        "(0..1 scale)")
+                                            "size, so dense near-range returns on a wide line cannot be their own "
+                                            "background")
+    local_contrast_k: float = Field(4.0, gt=0, description="ours: paint is this many robust sigmas (MAD) brighter "
+                                               "than the median of its surroundings ...")
+    local_min_contrast: float = Field(0.08, ge=0, le=1, description="ours: ... and at least this much brighter (0..1 "
+                                                        "scale)")
     local_max_radius_m: float = Field(3.0, gt=0, description="ours: a point whose surface samples reach farther than "
-                                      "this has no road around it to compare with (far range, where only paint "
-                                      "returns): the fixed reflectivity_threshold judges it")
-    local_max_roughness_m: float = Field(0.02, gt=0, description="ours: robust height spread (MAD) of the surroundings "
-                                         "above which they are not road surface (vegetation, gravel, kerbs)")
+                                                 "this has no road around it to compare with (far range, where only "
+                                                 "paint returns): the fixed reflectivity_threshold judges it")
+    local_max_roughness_m: float = Field(0.02, gt=0, description="ours: robust height spread (MAD) of the "
+                                                     "surroundings above which they are not road surface (vegetation, "
+                                                     "gravel, kerbs)")
     lateral_crop_m: float | None = Field(20.0, gt=0, description="ours: points farther than this left or right of the "
-                                         "vehicle are dropped (embankments, other roads); None = no crop")
+                                                     "vehicle are dropped (embankments, other roads); None = no crop")
     ground_prior_m: float = Field(0.5, gt=0, description="ours: the ground plane passes within this height of the "
-                                  "vehicle origin (on the road by definition of the vehicle frame); RANSAC draws "
-                                  "and scores its hypotheses on points this close to z = 0")
-    ground_rings: int = Field(3, ge=0, description="ours: range rings beyond ransac_range_m with their own "
-                              "ground plane, each twice as wide as the one before; 0 = one plane per scan (paper)")
+                                             "vehicle origin (on the road by definition of the vehicle frame); RANSAC "
+                                             "draws and scores its hypotheses on points this close to z = 0")
+    ground_rings: int = Field(3, ge=0, description="ours: range rings beyond ransac_range_m with their own ground "
+                                       "plane, each twice as wide as the one before; 0 = one plane per scan (paper)")
     ground_ring_window_m: float = Field(0.5, gt=0, description="ours: a ring's plane is refitted from its points this "
-                                        "close to the plane of the ring before")
+                                                   "close to the plane of the ring before")
     workers: Annotated[int, Field(ge=1)] | Literal["auto"] = Field(
         "auto", description="ours: processes reading and filtering scans in parallel (same bytes as 1); "
         "auto = the CPUs this process may use, at most 8")
-    moving_filter: bool = Field(True, description="ours: remove the trails of moving objects (the low, bright "
-                                "rear of a vehicle driving with the ego) from the accumulated marking cloud")
+    moving_filter: bool = Field(True, description="ours: remove the trails of moving objects (the low, bright rear of "
+                                      "a vehicle driving with the ego) from the accumulated marking cloud")
     moving_voxel_m: float = Field(1.0, gt=0, description="ours: a point is transient when its cell of this size (xy) "
-                                  "holds points of at most moving_max_scans scans; static paint is re-observed "
-                                  "as the sensor approaches it (simple_highway: 2 % of paint, 90 % of the trail)")
+                                             "holds points of at most moving_max_scans scans; static paint is "
+                                             "re-observed as the sensor approaches it (simple_highway: 2 % of paint, "
+                                             "90 % of the trail)")
     moving_max_scans: int = Field(2, ge=1, description="ours: ... at most this many scans")
     moving_link_m: float = Field(1.0, gt=0, description="ours: transient points this close (xy), and within "
-                                 "moving_pair_s, are one blob (one object's view)")
+                                            "moving_pair_s, are one blob (one object's view)")
     moving_min_scans: int = Field(3, ge=2, description="ours: a trail seed spans at least this many scans")
     moving_min_speed_mps: float = Field(3.0, ge=0, description="ours: a trail seed moves at least this fast (world "
                                                    "frame)")
     moving_min_travel_m: float = Field(3.0, ge=0, description="ours: ... and at least this far over its time span")
     moving_seed_rms_m: float = Field(0.25, gt=0, description="ours: RMS distance along the motion between a seed's "
-                                                 "points "
-                                     "and its constant-velocity fit (a vehicle's rear is a thin face moving on a "
-                                     "straight space-time line; paint seen through a detection window scatters "
-                                     "by the window's depth); widened by speed x scan period / sqrt(12) when the "
-                                     "points carry only the scan's time")
+                                                 "points and its constant-velocity fit (a vehicle's rear is a thin "
+                                                 "face moving on a straight space-time line; paint seen through a "
+                                                 "detection window scatters by the window's depth); widened by speed "
+                                                 "x scan period / sqrt(12) when the points carry only the scan's time")
     moving_gate_m: float = Field(0.5, gt=0, description="ours: a trail grows by transient points within this distance "
-                                 "along the motion of its position predicted at their time (widened by speed x "
-                                 "scan period / 2 without per-point times) ...")
+                                            "along the motion of its position predicted at their time (widened by "
+                                            "speed x scan period / 2 without per-point times) ...")
     moving_half_width_m: float = Field(1.5, gt=0, description="ours: ... and within this distance across it (half a "
-                                       "vehicle width plus margin; a lane line beside a lane-centred car is 1.75 m "
-                                       "away)")
+                                                  "vehicle width plus margin; a lane line beside a lane-centred car "
+                                                  "is 1.75 m away)")
     moving_max_speed_mps: float = Field(70.0, gt=0, description="ours: fastest object followed from one scan's view "
-                                        "of it to the next (world frame)")
+                                                    "of it to the next (world frame)")
     moving_pair_s: float = Field(0.25, gt=0, description="ours: an object that jumps between scans (a spinning sensor "
-                                 "hits it in a few ms) is followed from one view to the next this far apart in time "
-                                 "(one missed scan at 10 Hz)")
-    moving_min_width_m: float = Field(0.1, gt=0, description="ours: a trail narrower than this (RMS across its motion) "
-                                      "is a painted line swept by a moving observation edge, not an object: it "
-                                      "stays (a line 0.1-0.3 m wide: 0.03-0.09 m; a licence plate 0.15 m)")
+                                             "hits it in a few ms) is followed from one view to the next this far "
+                                             "apart in time (one missed scan at 10 Hz)")
+    moving_min_width_m: float = Field(0.1, ge=0, description="ours: a trail narrower than this (RMS across its "
+                                                 "motion) is a painted line swept by a moving observation edge, not "
+                                                 "an object: it stays (a line 0.1-0.3 m wide: 0.03-0.09 m; a licence "
+                                                 "plate 0.15 m); 0 = no width veto")
     moving_paint_radius_m: float = Field(0.5, gt=0, description="ours: a trail point with points of "
-                                         "moving_paint_min_scans other scans this close lies on paint ...")
-    moving_paint_min_scans: int = Field(2, ge=1, description="ours: ... (a following car crossing the same spot "
-                                        "adds one scan)")
-    moving_on_paint_share: float = Field(0.5, ge=0, le=1, description="ours: ... and a trail with this share of "
-                                                          "such points "
-                                         "is paint swept by a moving observation edge (one ring of a spinning "
-                                         "sensor along a line), not an object: it stays")
+                                                    "moving_paint_min_scans other scans this close lies on paint ...")
+    moving_paint_min_scans: int = Field(2, ge=1, description="ours: ... (a following car crossing the same spot adds "
+                                                 "one scan)")
+    moving_on_paint_share: float = Field(0.5, ge=0, description="ours: ... and a trail with this share of such points "
+                                                    "is paint swept by a moving observation edge (one ring of a "
+                                                    "spinning sensor along a line), not an object: it stays; above 1 "
+                                                    "= no paint veto")
     moving_max_gap_s: float = Field(0.5, gt=0, description="ours: a trail ends when no point joins it for this long")
     moving_step_s: float = Field(0.05, gt=0, description="ours: a trail grows by the points it predicts within this "
-                                 "time of the next such point, then refits (half a scan period at 10 Hz)")
+                                             "time of the next such point, then refits (half a scan period at 10 Hz)")
     moving_fit_window_s: float = Field(1.0, gt=0, description="ours: the trail's velocity is refitted on its points "
-                                       "within this time of its newest (oldest) end while it grows")
+                                                  "within this time of its newest (oldest) end while it grows")
 
 
 class MarkingsConfig(_Section):
@@ -174,25 +179,25 @@ class MarkingsConfig(_Section):
     search_radius_m: float = Field(1.75, gt=0, description="paper: ball radius (half the minimum lane width)")
     combine_search_m: float = Field(63.0, gt=0, description="paper: Combine search beyond each candidate end")
     min_cluster_points: int = Field(5, ge=1, description="ours: smaller clusters are noise")
-    dbscan_voxel_m: float = Field(0.2, gt=0, description="ours: DBSCAN runs on point-count-weighted voxel centroids of "
-                                  "this size, which bounds its memory on 50 km drives")
+    dbscan_voxel_m: float = Field(0.2, gt=0, description="ours: DBSCAN runs on point-count-weighted voxel centroids "
+                                             "of this size, which bounds its memory on 50 km drives")
     line_ransac_iterations: int = Field(32, ge=1, description="ours: line hypotheses per cluster (vectorised RANSAC)")
     min_direction_length_m: float = Field(1.0, gt=0, description="ours: clusters shorter than this (or than 3x their "
-                                          "width) do not steer SearchMark: their RANSAC direction is noise")
+                                                     "width) do not steer SearchMark: their RANSAC direction is noise")
     segment_tolerance_m: float = Field(0.5, gt=0, description="ours: point-to-segment distance that adds a missed "
-                                       "cluster")
+                                                  "cluster")
     search_z_tolerance_m: float = Field(1.0, gt=0, description="ours: height gate of the ball search (keeps bridges "
-                                        "apart)")
-    combine_max_angle_deg: float = Field(30.0, gt=0, le=180, description="ours: candidates meeting at a larger "
-                                                             "angle are not "
-                                         "combined")
+                                                   "apart)")
+    combine_max_angle_deg: float = Field(30.0, gt=0, le=180, description="ours: candidates meeting at a larger angle "
+                                                             "are not combined")
     max_turn_deg: float = Field(10.0, gt=0, le=180, description="ours: a found cluster whose direction turns the "
-                                                    "search by more "
-                                "than this keeps the previous direction (stray blobs beside a line)")
+                                                    "search by more than this keeps the previous direction (stray "
+                                                    "blobs beside a line)")
     max_lateral_offset_m: float = Field(0.8, gt=0, description="ours: SearchMark and Combine reject a target farther "
-                                        "than this beside the line extrapolated from the recent centres (and, in "
-                                        "Combine, the source beside the target's extrapolation): about a third of "
-                                        "the minimum lane width, so a link never crosses to the next lane line")
+                                                   "than this beside the line extrapolated from the recent centres "
+                                                   "(and, in Combine, the source beside the target's extrapolation): "
+                                                   "about a third of the minimum lane width, so a link never crosses "
+                                                   "to the next lane line")
     seed: int = Field(0, ge=0, description="seed of the line RANSAC")
 
 
@@ -206,81 +211,77 @@ class LanesConfig(_Section):
     station_step_m: float = Field(1.0, gt=0, description="ours: spacing of the reference-line stations")
     min_section_length_m: float = Field(30.0, gt=0, description="ours: shorter lane-count changes are noise")
     carriageway_gap_m: float = Field(10.0, gt=0, description="ours: a wider space between two lines separates "
-                                     "carriageways (an unobserved line between two others leaves two lanes)")
-    max_intersect_angle_deg: float = Field(30.0, gt=0, le=180, description="ours: normals ignore segments crossing "
-                                                               "at a larger "
-                                           "angle (ramps, crossing lines)")
+                                                 "carriageways (an unobserved line between two others leaves two "
+                                                 "lanes)")
+    max_intersect_angle_deg: float = Field(30.0, gt=0, le=180, description="ours: normals ignore segments crossing at "
+                                                               "a larger angle (ramps, crossing lines)")
     z_tolerance_m: float = Field(1.5, gt=0, description="ours: normals ignore lines this much higher or lower "
                                             "(bridges)")
     same_line_tolerance_m: float = Field(0.5, gt=0, description="ours: pieces at the same offset from a shared "
-                                                    "neighbour "
-                                         "(within this) are one superline; closer parallel lines are duplicates")
+                                                    "neighbour (within this) are one superline; closer parallel lines "
+                                                    "are duplicates")
     max_link_gap_m: float = Field(500.0, gt=0, description="ours: the global lookup joins pieces of a line across "
-                                  "unobserved stretches up to this long")
+                                               "unobserved stretches up to this long")
     line_join_gap_m: float = Field(40.0, gt=0, description="ours: a fitted line that ends where another begins within "
-                                   "this gap, at the same offset, is one line (marking chains break in tight curves "
-                                   "and occlusions, all lines at once, where the global lookup has no neighbour)")
-    assign_distance_m: float = Field(0.5, gt=0, description="ours: marking points this close to a boundary belong "
-                                                "to it")
+                                               "this gap, at the same offset, is one line (marking chains break in "
+                                               "tight curves and occlusions, all lines at once, where the global "
+                                               "lookup has no neighbour)")
+    assign_distance_m: float = Field(0.5, gt=0, description="ours: marking points this close to a boundary belong to "
+                                                "it")
     boundary_smoothing_m: float = Field(40.0, gt=0, description="ours: shortest wavelength kept in a boundary's t(s) "
-                                        "(robust Whittaker smoother)")
+                                                    "(robust Whittaker smoother)")
     reference_smoothing_m: float = Field(60.0, gt=0, description="ours: shortest wavelength kept in the reference line")
     stable_lane_slope: float = Field(0.02, gt=0, le=1, description="ours: a lane is stable where its width changes "
-                                                       "less than "
-                                     "this per metre; every lane needs a stable stretch of min_section_length_m")
+                                                       "less than this per metre; every lane needs a stable stretch "
+                                                       "of min_section_length_m")
     max_taper_length_m: float = Field(300.0, gt=0, description="ours: longest lane taper followed back to zero width")
     taper_min_length_m: float = Field(20.0, gt=0, description="ours: a straight line converging onto (diverging from) "
-                                      "the carriageway's right edge makes an entry (exit) lane only when marking "
-                                      "points lie on it at stations spanning this much road")
+                                                  "the carriageway's right edge makes an entry (exit) lane only when "
+                                                  "marking points lie on it at stations spanning this much road")
     taper_max_slope: float = Field(0.2, gt=0, le=1, description="ours: steepest taper (width change per metre, ~11 "
-                                                    "deg); the "
-                                   "flattest is stable_lane_slope (flatter lines run beside the road: guard rails)")
+                                                    "deg); the flattest is stable_lane_slope (flatter lines run "
+                                                    "beside the road: guard rails)")
     taper_line_tolerance_m: float = Field(0.3, gt=0, description="ours: points within this of a straight taper line "
-                                                     "lie "
-                                          "on it; their RMS distance must stay below half of it (one consistent "
-                                          "angle of convergence, not clutter)")
-    taper_meet_width_m: float = Field(1.5, gt=0, description="ours: a taper line must be seen this close to the "
-                                                 "edge it "
-                                      "meets; the meeting point is extrapolated along the line from there")
+                                                     "lie on it; their RMS distance must stay below half of it (one "
+                                                     "consistent angle of convergence, not clutter)")
+    taper_meet_width_m: float = Field(1.5, gt=0, description="ours: a taper line must be seen this close to the edge "
+                                                 "it meets; the meeting point is extrapolated along the line from "
+                                                 "there")
     taper_max_gap_m: float = Field(15.0, gt=0, description="ours: a taper line is followed across unobserved "
-                                               "stretches up "
-                                   "to this long (a broken line's gap, an occlusion)")
+                                               "stretches up to this long (a broken line's gap, an occlusion)")
     solid_min_run_m: float = Field(20.0, gt=0, description="ours: painted runs longer than this (length-weighted "
-                                               "median) "
-                                   "make a solid line")
-    divider_min_length_m: float = Field(300.0, gt=0, description="ours: a solid line with lanes on both sides that the "
-                                        "ego never crosses separates the two directions when it is that long")
+                                               "median) make a solid line")
+    divider_min_length_m: float = Field(300.0, gt=0, description="ours: a solid line with lanes on both sides that "
+                                                     "the ego never crosses separates the two directions when it is "
+                                                     "that long")
     divider_short_share: float = Field(0.75, ge=0, le=1, description="ours: on a road shorter than "
-                                                         "divider_min_length_m, a "
-                                       "line separates the two directions when it has lanes on both sides and the ego "
-                                       "drove both ways beside it (along s right of it, against s left of it), each "
-                                       "over this share of the road's length")
-    divider_max_wrong_side_m: float = Field(10.0, gt=0, description="ours: stations with the ego on the wrong side "
-                                                        "of a "
-                                            "divider candidate it may have (projection noise at a U-turn); a lane "
-                                            "change across it lasts far longer")
+                                                         "divider_min_length_m, a line separates the two directions "
+                                                         "when it has lanes on both sides and the ego drove both ways "
+                                                         "beside it (along s right of it, against s left of it), each "
+                                                         "over this share of the road's length")
+    divider_max_wrong_side_m: float = Field(10.0, gt=0, description="ours: stations with the ego on the wrong side of "
+                                                        "a divider candidate it may have (projection noise at a "
+                                                        "U-turn); a lane change across it lasts far longer")
     traffic_directions: bool = Field(True, description="ours: lanes with oncoming recorded traffic (the drive's "
-                                     "object list) left of lanes with traffic along the drive make a two-way road "
-                                     "where paint and ego gave no divider (lane_directions.py)")
+                                           "object list) left of lanes with traffic along the drive make a two-way "
+                                           "road where paint and ego gave no divider (lane_directions.py)")
     traffic_min_m: float = Field(40.0, gt=0, description="ours: metres of tracked traffic in a lane that decide its "
-                                 "direction")
-    traffic_share: float = Field(0.8, ge=0, le=1, description="ours: share of a lane's tracked traffic that must "
-                                                  "run one way")
+                                             "direction")
+    traffic_share: float = Field(0.8, ge=0, le=1, description="ours: share of a lane's tracked traffic that must run "
+                                                  "one way")
     traffic_min_speed_mps: float = Field(3.0, ge=0, description="ours: slower track samples say nothing about a "
                                                     "direction")
     branch_widening_m: float = Field(1.0, gt=0, description="ours: an outermost lane wider than its median width by "
-                                                "this "
-                                     "at a section end (start) leaves (joins) the road: a split, exit or merge")
+                                                "this at a section end (start) leaves (joins) the road: a split, exit "
+                                                "or merge")
     branch_window_m: float = Field(120.0, gt=0, description="ours: a branch is measured from the markings within this "
-                                   "distance of its junction (a sensor beside it sees no farther; clutter beyond "
-                                   "would bend its road axis)")
+                                                "distance of its junction (a sensor beside it sees no farther; "
+                                                "clutter beyond would bend its road axis)")
     branch_min_line_m: float = Field(10.0, gt=0, description="ours: a branch is measured only from the points of "
-                                                 "marking "
-                                     "lines (candidates) spanning at least this; shorter paint (clutter at a U-turn, "
-                                     "arrows, blobs) would bend its road axis")
-    branch_min_length_m: float = Field(30.0, gt=0, description="ours: a leaving or joining lane becomes a road of "
-                                                   "its own "
-                                       "when its markings give lanes over at least this length")
+                                                 "marking lines (candidates) spanning at least this; shorter paint "
+                                                 "(clutter at a U-turn, arrows, blobs) would bend its road axis")
+    branch_min_length_m: float = Field(30.0, gt=0, description="ours: a leaving or joining lane becomes a road of its "
+                                                   "own when its markings give lanes over at least this length")
 
 
     @model_validator(mode="after")
@@ -303,21 +304,21 @@ class ExportConfig(_Section):
         "motorway", description="ours: OpenDRIVE road type (the paper's drives are motorways)")
     lane_record_m: float = Field(25.0, gt=0, description="ours: length of the laneOffset/width cubic records")
     taper_length_m: float = Field(60.0, gt=0, description="ours: an appearing lane whose markings start at full width "
-                                  "opens from 0 over this length (ends likewise)")
+                                              "opens from 0 over this length (ends likewise)")
     right_shoulder_m: float = Field(0.0, ge=0, description="ours: width of a 'shoulder' lane outside the right edge "
-                                    "line; 0 = none (not measured, so off by default)")
-    left_border_m: float = Field(0.0, ge=0, description="ours: width of a 'border' lane left of the leftmost line; "
-                                            "0 = none")
+                                               "line; 0 = none (not measured, so off by default)")
+    left_border_m: float = Field(0.0, ge=0, description="ours: width of a 'border' lane left of the leftmost line; 0 "
+                                            "= none")
     elevation_record_m: float | None = Field(None, ge=5.0, description="ours: length of the elevation cubic records "
-                                             "(C2 spline); None = the paper's one cubic per planView piece, which "
-                                             "misses vertical curves shorter than a piece")
+                                                           "(C2 spline); None = the paper's one cubic per planView "
+                                                           "piece, which misses vertical curves shorter than a piece")
     superelevation_median_scans: int = Field(9, ge=1, description="ours: running median over the per-scan roll angles")
     superelevation_smoothing: float = Field(0.01, ge=0, description="ours: P-spline penalty of the superelevation fit")
     plane_max_offset_m: float = Field(15.0, gt=0, description="ours: ground planes farther from the reference are "
                                                   "ignored")
     junction_blend_m: float = Field(30.0, gt=0, description="ours: a branch road is bent onto the road it leaves or "
-                                                "joins "
-                                    "over this length from the junction (or its whole length if shorter)")
+                                                "joins over this length from the junction (or its whole length if "
+                                                "shorter)")
     junction_type: Literal["default", "direct"] = Field(
         "default", description="ours: 'default' = classic junction with connecting roads (read by every reader, "
         "SUMO 1.15 included); 'direct' = OpenDRIVE 1.7+ direct junction (no connecting roads)")
@@ -336,19 +337,19 @@ class EvaluationConfig(_Section):
 
     sample_step_m: float = Field(0.5, gt=0, description="ours: uniform sampling of both maps")
     near_m: float = Field(3.0, gt=0, description="ours: reference samples farther than this from the generated map's "
-                          "carriageway edge are outside the evaluated part (see README)")
-    heading_tolerance_deg: float = Field(45.0, gt=0, le=180, description="ours: lines are matched only to lines "
-                                                             "whose travel "
-                                         "direction differs by at most this (keeps the opposite carriageway out)")
+                                     "carriageway edge are outside the evaluated part (see README)")
+    heading_tolerance_deg: float = Field(45.0, gt=0, le=180, description="ours: lines are matched only to lines whose "
+                                                             "travel direction differs by at most this (keeps the "
+                                                             "opposite carriageway out)")
     lane_count_min_width_m: float = Field(1.75, gt=0, description="ours: narrower driving lanes (opening or closing "
                                           "tapers) are not counted; half the paper's 3.5 m lane")
     lane_graph_step_m: float = Field(0.5, gt=0, description="ours: lane-graph agreement follows each reference "
                                      "lane centre in steps of this length; a tenth of a 6 m dash, so no lane "
                                      "section or link change is stepped over")
-    lane_graph_min_width_m: float = Field(1.75, description="ours: a generated lane narrower than this where "
+    lane_graph_min_width_m: float = Field(1.75, gt=0, description="ours: a generated lane narrower than this where "
                                           "it holds a reference lane's centre is not a lane there (half the "
                                           "paper's 3.5 m lane; issue #13's 0.54 m sliver is far below it)")
-    lane_graph_taper_m: float = Field(60.0, description="ours: a narrower generated lane still counts within "
+    lane_graph_taper_m: float = Field(60.0, ge=0, description="ours: a narrower generated lane still counts within "
                                       "this length of its lane's first or last end (an opening or closing taper; "
                                       "German motorway tapers run 60-70 m, RAA)")
 
@@ -376,9 +377,8 @@ class ScenarioConfig(_Section):
     lane_change_margin_m: float = Field(0.5, gt=0, description="ours: the centre must get this deep into the new lane")
     cut_in_range_m: float = Field(50.0, gt=0, description="task: a cut-in/out happens within this distance ahead of "
                                               "the ego")
-    ego_dims_m: tuple[PositiveLength, PositiveLength, PositiveLength] = Field((4.9, 1.9, 1.5), description="ours: "
-                                                                                               "ego length, width, "
-                                                                                               "height")
+    ego_dims_m: tuple[PositiveLength, PositiveLength, PositiveLength] = Field((4.9, 1.9, 1.5), description="ours: ego "
+                                                                                               "length, width, height")
     ego_center_x_m: float = Field(0.0, description="ours: box centre ahead of the ego pose origin")
     gnss_smoothing_s: float = Field(2.0, gt=0, description="ours: time scale of GNSS correction of dead reckoning")
     class_map: dict[str, str] = Field(default_factory=dict, description="raw class -> category, e.g. {'7': 'car'}")

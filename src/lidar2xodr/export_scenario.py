@@ -573,6 +573,6 @@ def print_summary(summary: ScenarioSummary, out: Console, err: Console) -> None:
     for m in summary.manoeuvres:
         where = f", {m.distance_m:.1f} m ahead" if m.distance_m is not None else ""
         text = f"{m.time_s:8.2f} s  {m.kind:<16} {m.actor}: lane {m.from_lane} -> {m.to_lane} ({m.direction})"
-        out.print(text + where, highlight=False)
+        out.print(text + where, highlight=False, markup=False)
     for w in summary.warnings:
-        err.print(f"[yellow]warning:[/] {w}", highlight=False, soft_wrap=True)
+        err.print(f"[yellow]warning:[/] {escape(' '.join(str(w).split()))}", highlight=False, soft_wrap=True)
