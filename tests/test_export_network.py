@@ -9,9 +9,7 @@ misjudged the gore would be; the exporter must snap them onto the main road.
 from __future__ import annotations
 
 import math
-import os
 import re
-import shutil
 import subprocess
 from pathlib import Path
 
@@ -20,7 +18,7 @@ import pytest
 from lxml import etree
 from scipy.integrate import cumulative_trapezoid
 
-from lidar2xodr.check import find_qc_venv, junction_gaps, polyline_distance
+from lidar2xodr.check import find_netconvert, find_qc_venv, junction_gaps, polyline_distance
 from lidar2xodr.config import ExportConfig
 from lidar2xodr.data import Boundary, GroundPlanes, LaneModel, LaneSection, RoadLink, RoadNetwork
 from lidar2xodr.errors import InputError
@@ -444,7 +442,7 @@ def test_classic_junction_on_a_short_branch(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_asam_checker_sumo_and_pyxodr_accept_the_classic_junctions(written, tmp_path: Path) -> None:
-    """The default form: 0 ASAM issues, SUMO 1.15 and pyxodr read it without a warning and join the right lanes."""
+    """The default form: 0 ASAM issues, SUMO 1.28 and pyxodr read it without a warning and join the right lanes."""
     try:
         find_qc_venv()
     except InputError as exc:
@@ -468,13 +466,13 @@ def test_asam_checker_sumo_and_pyxodr_accept_the_classic_junctions(written, tmp_
     expected = {"diverge": {("-1", "-2", "1", "0"), ("-1", "-3", "0", "0")},
                 "merge": {("-1", "-2", "0", "1"), ("-3", "-2", "0", "0")},
                 "two_way": {("-1", "-2", "1", "0"), ("-1", "-3", "0", "0"), ("2", "1", "0", "0")}}
-    env = dict(os.environ, SUMO_HOME=os.environ.get("SUMO_HOME", "/usr/share/sumo"))
+    nc = find_netconvert()
     for name, path in maps.items():
         sumo = verdicts[name]["readers"]["netconvert"]
         assert sumo["ok"] and sumo["returncode"] == 0, (name, sumo["errors"], sumo["warnings"])
         net = tmp_path / f"{name}.net.xml"
-        subprocess.run([shutil.which("netconvert"), "--opendrive-files", str(path), "-o", str(net)], check=True,
-                       capture_output=True, env=env, timeout=120)
+        subprocess.run([str(nc.exe), "--opendrive-files", str(path), "-o", str(net)], check=True,
+                       capture_output=True, env=nc.env(), timeout=120)
         joined = {(c.get("from"), c.get("to"), c.get("fromLane"), c.get("toLane"))
                   for c in etree.parse(str(net)).getroot().findall("connection")
                   if not c.get("from").startswith(":") and c.get("dir") != "t"}
@@ -506,14 +504,14 @@ def test_direct_junctions_pass_the_asam_checker_but_sumo_1_15_needs_ignore_error
         pytest.skip(sumo["note"])
     assert sumo["returncode"] != 0 and sumo["errors"]
     assert all(re.search("connectingRoad' is missing", ln) for ln in sumo["errors"]), sumo["errors"]
-    env = dict(os.environ, SUMO_HOME=os.environ.get("SUMO_HOME", "/usr/share/sumo"))
+    nc = find_netconvert()
     expected = {"diverge": {("-1", "-2"), ("-1", "-3")}, "merge": {("-1", "-2"), ("-3", "-2")}}
     for name in ("diverge", "merge"):
         _, _, path, _ = written[name]
         net = tmp_path / f"{name}.net.xml"
         # with --ignore-errors it joins the roads at the junction node and guesses the lanes
-        run = subprocess.run([shutil.which("netconvert"), "--opendrive-files", str(path), "--ignore-errors", "-o",
-                              str(net)], capture_output=True, text=True, env=env, timeout=120)
+        run = subprocess.run([str(nc.exe), "--opendrive-files", str(path), "--ignore-errors", "-o",
+                              str(net)], capture_output=True, text=True, env=nc.env(), timeout=120)
         assert run.returncode == 0, run.stderr
         root = etree.parse(str(net)).getroot()
         joined = {(c.get("from"), c.get("to")) for c in root.findall("connection") if not c.get("from").startswith(":")}

@@ -20,10 +20,11 @@ Three parts:
   of its `to` lane at the connecting (linked) road's contact point, in 3D (reported, not judged:
   overlap zones of real maps may be wide on purpose).
 
-* `readers` (.xodr; `readers=False` skips them): two independent readers load the map as a user
-  would. `netconvert`: SUMO's converter with its default options (SUMO_HOME defaults to
-  /usr/share/sumo), every "Warning:"/"Error:" line verbatim and the edges/lanes/connections it
-  built; absent netconvert gives {"available": False, "note": ...}. `pyxodr`: the map loaded and
+* `readers` (.xodr; `readers=False` skips them): independent readers load the map as a user
+  would (quality/readers.py). `netconvert`: SUMO's converter with its default options (the
+  PyPI eclipse-sumo of the lock unless SUMO_HOME says otherwise), every "Warning:"/"Error:" line
+  verbatim and the edges/lanes/connections it built; absent netconvert gives
+  {"available": False, "note": ...}. `pyxodr`: the map loaded and
   everything evaluated (references, lane borders, successors, junction roads); Python warnings and
   printed lines are warnings, exceptions errors; `max_reference_dev_m` is how far its reference
   points lie from ours. Reported, never part of the verdict: a reader's limits are not the file's
@@ -43,15 +44,11 @@ paramPoly3 length mismatches are reported but do not fail the verdict.
 
 from __future__ import annotations
 
-import contextlib
-import importlib.metadata
-import io
 import math
 import os
-import shutil
 import subprocess
 import tempfile
-import warnings
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -61,15 +58,22 @@ from rich.console import Console
 from rich.table import Table
 
 from lidar2xodr.errors import InputError
+from lidar2xodr.quality.readers import (
+    find_netconvert,
+    polyline_distance,
+    run_in_subprocess,
+    run_netconvert,
+    run_pyxodr,
+)
+
+__all__ = ["check_file", "continuity", "find_netconvert", "find_qc_venv", "junction_gaps", "polyline_distance",
+           "print_check", "run_asam_checker", "run_netconvert", "run_pyxodr"]
 
 LEAP_LIMIT_M = 0.001
 KINK_LIMIT_RAD = 0.001
 QC_ENV_VAR = "LIDAR2XODR_QC_VENV"
 QC_TIMEOUT_S = 900
 ARC_STEP_M = 0.05
-SUMO_HOME_DEFAULT = Path("/usr/share/sumo")
-READER_TIMEOUT_S = 600
-PYXODR_RESOLUTION_M = 0.5
 _LEVELS = {1: "error", 2: "warning", 3: "information"}
 _CHECKERS = {".xodr": ("qc_opendrive", "xodrBundle"), ".xosc": ("qc_openscenario", "xoscBundle")}
 
@@ -311,119 +315,12 @@ def continuity(odr: Any) -> dict[str, Any]:
     }
 
 
-def _sumo_env() -> dict[str, str]:
-    env = dict(os.environ)
-    if not env.get("SUMO_HOME") and SUMO_HOME_DEFAULT.is_dir():
-        env["SUMO_HOME"] = str(SUMO_HOME_DEFAULT)
-    return env
-
-
-def run_netconvert(path: Path) -> dict[str, Any]:
-    """SUMO netconvert reads the map as a user would (`--opendrive-files MAP`, default options).
-
-    Every "Warning:" and "Error:" line is kept verbatim (`--aggregate-warnings -1`, so none is folded
-    into a count); the built network's edges, lanes and connections show that something was read.
-    Without netconvert on PATH: {"available": False, "note": ...}.
-    """
-    exe = shutil.which("netconvert")
-    if exe is None:
-        return {"available": False, "note": "SUMO netconvert not installed (Debian/Ubuntu package sumo): not checked"}
-    env = _sumo_env()
-    out: dict[str, Any] = {"available": True, "reader": "SUMO netconvert"}
-    try:
-        head = subprocess.run([exe, "--version"], capture_output=True, text=True, env=env, timeout=60, check=False)
-        out["version"] = (head.stdout.strip().splitlines() or ["?"])[0].split("Version")[-1].strip()
-    except (OSError, subprocess.TimeoutExpired):
-        out["version"] = "?"
-    with tempfile.TemporaryDirectory(prefix="lidar2xodr-sumo-") as tmp:
-        net = Path(tmp) / "map.net.xml"
-        cmd = [exe, "--opendrive-files", str(path.resolve()), "--aggregate-warnings", "-1", "-o", str(net)]
-        try:
-            proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=tmp, timeout=READER_TIMEOUT_S,
-                                  check=False)
-        except subprocess.TimeoutExpired:
-            return {**out, "ok": False, "returncode": None, "warnings": [],
-                    "errors": [f"netconvert did not finish within {READER_TIMEOUT_S} s"]}
-        except OSError as exc:
-            return {**out, "ok": False, "returncode": None, "warnings": [],
-                    "errors": [f"cannot start netconvert: {exc}"]}
-        lines = [ln.strip() for ln in (proc.stdout + "\n" + proc.stderr).splitlines()]
-        out.update(returncode=proc.returncode, warnings=[ln for ln in lines if ln.startswith("Warning:")],
-                   errors=[ln for ln in lines if ln.startswith("Error:")], edges=0, lanes=0, connections=0)
-        if net.is_file():
-            root = etree.parse(str(net)).getroot()
-            edges = [e for e in root.iter("edge") if e.get("function") != "internal"]
-            out.update(edges=len(edges), lanes=sum(len(e.findall("lane")) for e in edges),
-                       connections=sum(not c.get("from", ":").startswith(":") for c in root.iter("connection")))
-    out["ok"] = out["returncode"] == 0 and not out["warnings"] and not out["errors"]
-    return out
-
-
-def polyline_distance(points: np.ndarray, poly: np.ndarray) -> np.ndarray:
-    """Distance of each point to a polyline (the segments beside its nearest vertex)."""
-    from scipy.spatial import cKDTree
-
-    _, i = cKDTree(poly).query(points)
-    best = np.full(len(points), np.inf)
-    for a, b in ((np.maximum(i - 1, 0), i), (i, np.minimum(i + 1, len(poly) - 1))):
-        seg = poly[b] - poly[a]
-        u = np.clip(np.sum((points - poly[a]) * seg, axis=1) / np.maximum(np.sum(seg * seg, axis=1), 1e-18), 0, 1)
-        best = np.minimum(best, np.linalg.norm(points - (poly[a] + u[:, None] * seg), axis=1))
-    return best
-
-
-def run_pyxodr(path: Path, odr: Any | None = None) -> dict[str, Any]:
-    """pyxodr (an independent Python reader) loads the map and evaluates everything a user would touch.
-
-    Every road (connecting roads included): reference line, lane offset, heights, every lane's
-    borders, centre and traffic-flow successors; every junction's incoming and outgoing roads (a
-    missing road is an error). Python warnings and anything printed are kept as warnings, exceptions
-    as errors. With the project's reader's `odr`, `max_reference_dev_m` is the largest distance of
-    pyxodr's reference points from ours (the two readers agree on the geometry).
-    """
-    try:
-        from pyxodr.road_objects.network import RoadNetwork
-    except ImportError:
-        return {"available": False, "note": "pyxodr not installed: not checked"}
-    out: dict[str, Any] = {"available": True, "reader": "pyxodr", "version": importlib.metadata.version("pyxodr"),
-                           "warnings": [], "errors": []}
-    printed = io.StringIO()
-    refs: dict[str, np.ndarray] = {}
-    with warnings.catch_warnings(record=True) as caught, contextlib.redirect_stdout(printed), \
-            contextlib.redirect_stderr(printed):
-        warnings.simplefilter("always")
-        try:
-            net = RoadNetwork(str(path), resolution=PYXODR_RESOLUTION_M)
-            roads = net.get_roads(include_connecting_roads=True)
-            for road in roads:
-                refs[str(road.id)] = np.asarray(road.reference_line)[:, :2]
-                _ = road.lane_offset_line, road.z_coordinates
-                for section in road.lane_sections:
-                    for lane in section.lanes:
-                        _ = lane.boundary_line, lane.centre_line, lane.traffic_flow_successors
-            for junction in net.get_junctions():
-                _ = junction.get_incoming_road_ids(), junction.get_outgoing_road_ids(net.road_ids_to_object)
-            out.update(roads=len(roads), junctions=len(net.get_junctions()))
-        except Exception as exc:  # any failure of the reader is its verdict on the file
-            out["errors"].append(f"{type(exc).__name__}: {exc}")
-    out["warnings"] += [f"{w.category.__name__}: {w.message}" for w in caught]
-    out["warnings"] += [ln for ln in printed.getvalue().splitlines() if ln.strip()]
-    if odr is not None and refs and not out["errors"]:
-        dev = 0.0
-        for rid, pts in refs.items():
-            road = odr.roads.get(rid)
-            if road is None or road.length <= 0:
-                continue
-            s = np.linspace(0.0, road.length, max(2, math.ceil(road.length / 0.05) + 1))
-            x, y, _ = road.reference(s)
-            dev = max(dev, float(polyline_distance(pts, np.column_stack([x, y])).max()))
-        out["max_reference_dev_m"] = dev
-    out["ok"] = not out["warnings"] and not out["errors"]
-    return out
-
-
 def check_file(path: Path, readers: bool = True) -> dict[str, Any]:
-    """Check an .xodr (ASAM + continuity + independent readers) or an .xosc (ASAM); the result always holds `ok`."""
+    """Check an .xodr (ASAM + continuity + independent readers) or an .xosc (ASAM); the result always holds `ok`.
+
+    The ASAM checker and the readers are child processes started together; the continuity check
+    runs here meanwhile, so the whole check takes about as long as its slowest part.
+    """
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in _CHECKERS:
@@ -432,22 +329,27 @@ def check_file(path: Path, readers: bool = True) -> dict[str, Any]:
         raise InputError(path, "file not found")
     venv = find_qc_venv()
     result: dict[str, Any] = {"file": str(path), "kind": suffix[1:]}
-    result["asam"] = run_asam_checker(path, venv)
     reasons = []
-    if result["asam"]["errors"]:
-        reasons.append(f"{result['asam']['errors']} ASAM error(s)")
-    if suffix == ".xodr":
-        from lidar2xodr.opendrive import OpenDriveMap
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        asam = pool.submit(run_asam_checker, path, venv)
+        jobs: dict[str, Future] = {}
+        if suffix == ".xodr" and readers:
+            jobs = {"netconvert": pool.submit(run_netconvert, path),
+                    "pyxodr": pool.submit(run_in_subprocess, "pyxodr", path)}
+        if suffix == ".xodr":
+            from lidar2xodr.opendrive import OpenDriveMap
 
-        odr = None
-        try:
-            odr = OpenDriveMap.load(path)
-            result["continuity"] = continuity(odr)
-        except InputError as exc:
-            result["continuity"] = {"error": str(exc)}
-            reasons.append(f"unreadable geometry: {exc.problem}")
-        if readers:
-            result["readers"] = {"netconvert": run_netconvert(path), "pyxodr": run_pyxodr(path, odr)}
+            try:
+                odr = OpenDriveMap.load(path)
+                result["continuity"] = continuity(odr)
+            except InputError as exc:
+                result["continuity"] = {"error": str(exc)}
+                reasons.append(f"unreadable geometry: {exc.problem}")
+        result["asam"] = asam.result()
+        if jobs:
+            result["readers"] = {name: job.result() for name, job in jobs.items()}
+    if result["asam"]["errors"]:
+        reasons.insert(0, f"{result['asam']['errors']} ASAM error(s)")
     cont = result.get("continuity", {})
     if cont.get("max_leap_m", 0.0) > LEAP_LIMIT_M:
         reasons.append(f"geometry leap {cont['max_leap_m']:.4f} m > {LEAP_LIMIT_M} m")
