@@ -1,5 +1,6 @@
 # Two commands set everything up from nothing: `make demo` and `make test`.
-# The venvs install exactly the lock files (every package and version); `make lock` regenerates them.
+# The venvs install exactly the lock files (every package and version, --no-deps: the lock is the whole
+# environment, pip check proves it complete); `make lock` regenerates them.
 PY ?= python3
 VENV := .venv
 QC := .venv-qc
@@ -24,7 +25,7 @@ $(VENV)/.stamp-system: scripts/install-system-deps.sh
 
 $(VENV)/.stamp: $(LOCK) pyproject.toml $(VENV)/.stamp-system
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
-	$(BIN)/$(PIP) -r $(LOCK)
+	$(BIN)/$(PIP) --no-deps -r $(LOCK)
 	$(BIN)/$(PIP) --no-deps -e .
 	$(BIN)/python -m pip check
 	touch $@
@@ -32,7 +33,7 @@ $(VENV)/.stamp: $(LOCK) pyproject.toml $(VENV)/.stamp-system
 # The ASAM quality checkers pin numpy<2, so they live in their own venv and run as a process.
 $(QC)/.stamp: $(QC_LOCK)
 	test -x $(QC)/bin/python || $(PY) -m venv $(QC)
-	$(QC)/bin/$(PIP) -r $(QC_LOCK)
+	$(QC)/bin/$(PIP) --no-deps -r $(QC_LOCK)
 	$(QC)/bin/python -m pip check
 	touch $@
 
