@@ -238,3 +238,16 @@ def test_netconvert_without_sumo_data_is_an_error_naming_it(tmp_path: Path, monk
     assert res["available"] and not res["ok"] and res["version"] == "0.0"
     types = "data/typemap/opendriveNetconvert.typ.xml"
     assert res["errors"] == [f"SUMO's data is missing: no {types} in {tmp_path / 'sumo'}"]
+
+
+@pytest.mark.parametrize("namespace", ["http://www.opendrive.org",
+                                       "http://code.asam.net/simulation/standard/opendrive_schema"])
+def test_namespaced_map_checks_like_the_plain_one(tmp_path: Path, namespace: str) -> None:
+    """The ASAM checker's schemas have no namespace: it gets a plain copy, its rows still point into the file."""
+    plain = _map(tmp_path, _line(0, 0, 0, 0, 50) + _line(50, 50, 0.05, 0, 50), 100)
+    spaced = tmp_path / "spaced.xodr"
+    spaced.write_text(plain.read_text().replace("<OpenDRIVE>", f'<OpenDRIVE xmlns="{namespace}">'))
+    a, b = check_file(plain, readers=False), check_file(spaced, readers=False)
+    assert namespace in b["asam"]["note"] and "note" not in a["asam"]
+    assert b["asam"]["errors"] == a["asam"]["errors"] == 0 and b["reasons"] == a["reasons"]
+    assert b["continuity"] == a["continuity"] and b["ok"] is a["ok"] is False

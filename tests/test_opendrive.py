@@ -445,6 +445,78 @@ def test_bad_files(tmp_path: Path, text: str, needle: str) -> None:
 
 
 # ---------------------------------------------------------------------------------------------
+# namespaced files and negative widths
+
+
+def _rich_map() -> str:
+    """A map with a spiral, elevation, two lane sections, road marks, links and a junction."""
+    lanes = LANES.replace('<laneSection s="0">', '<laneSection s="0">', 1).replace(
+        "</laneSection></lanes>",
+        '</laneSection><laneSection s="30"><center><lane id="0" type="none"/></center><right>'
+        '<lane id="-1" type="driving"><width sOffset="0" a="3.5" b="0.01"/>'
+        '<roadMark sOffset="0" type="solid broken" width="0.15"/></lane></right></laneSection></lanes>',
+    )
+    link = '<link><successor elementType="junction" elementId="9"/></link>'
+    text = xodr(geom('<spiral curvStart="0" curvEnd="0.01"/>', 60), 60, lanes=lanes,
+                extra='<elevationProfile><elevation s="0" a="1" b="0.02" c="0" d="0"/></elevationProfile>')
+    return text.replace("<planView>", link + "<planView>", 1).replace(
+        "</OpenDRIVE>",
+        '<junction id="9" name="j"><connection id="0" incomingRoad="7" connectingRoad="7" contactPoint="end">'
+        '<laneLink from="-1" to="-1"/></connection></junction></OpenDRIVE>',
+    )
+
+
+@pytest.mark.parametrize("namespace", ["http://www.opendrive.org",
+                                       "http://code.asam.net/simulation/standard/opendrive_schema"])
+def test_namespaced_file_reads_like_the_plain_one(tmp_path: Path, namespace: str) -> None:
+    plain = load(tmp_path, _rich_map(), "plain.xodr")
+    spaced_text = _rich_map().replace("<OpenDRIVE>", f'<OpenDRIVE xmlns="{namespace}">', 1)
+    spaced = load(tmp_path, spaced_text, "spaced.xodr")
+    assert spaced.version == plain.version and spaced.geo_reference == plain.geo_reference
+    assert spaced.roads.keys() == plain.roads.keys() and spaced.junctions == plain.junctions
+    a, b = plain.sample(0.5), spaced.sample(0.5)
+    assert len(a) == len(b) == 2
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x.xyz, y.xyz)
+        assert x.lane_ids == y.lane_ids and x.lane_types == y.lane_types
+        for lid in x.lane_ids:
+            np.testing.assert_array_equal(x.border_t[lid], y.border_t[lid])
+    assert [m.lines for m in spaced.roads["7"].lane_sections[1].lanes[-1].road_marks] == \
+        [m.lines for m in plain.roads["7"].lane_sections[1].lanes[-1].road_marks]
+    # a prefixed namespace reads the same; an unknown one is named
+    prefixed = spaced_text.replace(f'xmlns="{namespace}"', f'xmlns:o="{namespace}"').replace("<", "<o:")
+    prefixed = prefixed.replace("<o:?xml", "<?xml").replace("<o:/", "</o:").replace("<o:![CDATA[", "<![CDATA[")
+    np.testing.assert_array_equal(load(tmp_path, prefixed, "prefixed.xodr").sample(0.5)[1].xyz, b[1].xyz)
+    with pytest.raises(InputError, match="root element is <{http://example.com}OpenDRIVE>"):
+        load(tmp_path, _rich_map().replace("<OpenDRIVE>", '<OpenDRIVE xmlns="http://example.com">'), "x.xodr")
+
+
+def _width_map(minor: int, width: str) -> str:
+    lanes = LANES.replace('<lane id="-1" type="driving">\n <width sOffset="0" a="3.5" b="0" c="0" d="0"/>',
+                          f'<lane id="-1" type="driving"><width sOffset="0" a="3.5"/>{width}')
+    assert width in lanes
+    return xodr(geom("<line/>", 100), 100, lanes=lanes, minor=minor)
+
+
+@pytest.mark.parametrize("minor", [6, 8])
+def test_negative_lane_widths_are_found_where_they_are(tmp_path: Path, minor: int) -> None:
+    # from s=40: 1 - 0.4 ds + 0.02 ds^2 is positive at both ends of its range and -1 m at ds = 10
+    dip = load(tmp_path, _width_map(minor, '<width sOffset="40" a="1" b="-0.4" c="0.02"/>'))
+    [bad] = dip.negative_widths()
+    assert (bad.road, bad.section, bad.lane) == ("7", 0, -1)
+    assert bad.s == pytest.approx(50.0) and bad.width == pytest.approx(-1.0)
+    with pytest.raises(InputError) as err:
+        dip.require_nonnegative_widths()
+    assert str(err.value) == f"{tmp_path / 'm.xodr'} road 7 lane -1: lane width -1.000 m < 0 at s=50.00"
+    # a linear record going below zero is caught at its end; one ending exactly at 0 is fine
+    down = load(tmp_path, _width_map(minor, '<width sOffset="50" a="3.5" b="-0.1"/>'))
+    assert [(w.s, round(w.width, 9)) for w in down.negative_widths()] == [(100.0, -1.5)]
+    taper = load(tmp_path, _width_map(minor, '<width sOffset="65" a="3.5" b="-0.1"/>'))
+    assert taper.negative_widths() == []
+    taper.require_nonnegative_widths()
+
+
+# ---------------------------------------------------------------------------------------------
 # cross-check against independent readers on every shared map
 #
 # pyxodr gives reference lines, reference z and lane borders. It offsets borders along

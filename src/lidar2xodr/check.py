@@ -32,8 +32,12 @@ Three parts:
   at a section change on a two-way road, which the standard requires to be unlinked; see
   export_sections.py for how our maps avoid it).
 
+* `lane_widths` (.xodr): `negative` lists every lane width record whose cubic drops below 0 on its
+  range (road, section, lane, s and the width there; an error).
+
 Verdict: `ok` is False when the ASAM checker reports at least one error, when the project's
-OpenDRIVE reader cannot evaluate the geometry (`continuity.error`), or a leap exceeds
+OpenDRIVE reader cannot evaluate the geometry (`continuity.error`), a lane width record is
+negative somewhere, or a leap exceeds
 `LEAP_LIMIT_M` (1 mm) or a kink exceeds `KINK_LIMIT_RAD` (1 mrad), the limits issue #6 sets for
 built maps. Why so strict: readers that snap to the next piece make lane borders jump by many times
 the gap (a 1.4 cm gap moved borders by 30-81 cm), and a 1 mrad kink still shifts a border 11 m from
@@ -49,6 +53,7 @@ import os
 import subprocess
 import tempfile
 from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -159,7 +164,8 @@ def run_asam_checker(path: Path, venv: Path | None = None) -> dict[str, Any]:
     venv = venv or find_qc_venv()
     with tempfile.TemporaryDirectory(prefix="lidar2xodr-qc-") as tmp:
         cfg, result = Path(tmp) / "config.xml", Path(tmp) / "result.xqar"
-        _write_config(cfg, path.resolve(), bundle, result)
+        checked, namespace = _plain_copy(path, Path(tmp)) if module == "qc_opendrive" else (path, None)
+        _write_config(cfg, checked.resolve(), bundle, result)
         try:
             proc = subprocess.run([str(venv / "bin" / "python"), "-m", module, "-c", str(cfg)], cwd=tmp,
                                   capture_output=True, text=True, timeout=QC_TIMEOUT_S, check=False)
@@ -172,7 +178,31 @@ def run_asam_checker(path: Path, venv: Path | None = None) -> dict[str, Any]:
             raise InputError(path, f"the ASAM checker ({module}) failed: {tail[0]}")
         out = parse_result(result)
     out["checker"] = module
+    if namespace:
+        out["note"] = f"the root's namespace {namespace} was removed for the checker (its schemas declare none)"
     return out
+
+
+def _plain_copy(path: Path, tmp: Path) -> tuple[Path, str | None]:
+    """The map as the ASAM checker can validate it: a copy without an OpenDRIVE namespace, when it has one.
+
+    The checker's schemas have no target namespace, so it rejects `<OpenDRIVE xmlns=...>` outright;
+    the copy keeps every line where it was, so the issues' row numbers still point into the user's file.
+    """
+    from lidar2xodr.opendrive import OPENDRIVE_NAMESPACES, strip_namespace
+
+    try:
+        _, root = next(etree.iterparse(str(path), events=("start",)))
+        namespace = etree.QName(root).namespace
+    except (etree.XMLSyntaxError, OSError, StopIteration):
+        return path, None
+    if namespace not in OPENDRIVE_NAMESPACES:
+        return path, None
+    tree = etree.parse(str(path), etree.XMLParser(huge_tree=True))
+    strip_namespace(tree.getroot())
+    plain = tmp / path.name
+    tree.write(str(plain), xml_declaration=True, encoding=tree.docinfo.encoding or "UTF-8")
+    return plain, namespace
 
 
 def _arc_length(geom: Any) -> float:
@@ -342,6 +372,7 @@ def check_file(path: Path, readers: bool = True) -> dict[str, Any]:
             try:
                 odr = OpenDriveMap.load(path)
                 result["continuity"] = continuity(odr)
+                result["lane_widths"] = lane_widths(odr)
             except InputError as exc:
                 result["continuity"] = {"error": str(exc)}
                 reasons.append(f"unreadable geometry: {exc.problem}")
@@ -355,9 +386,19 @@ def check_file(path: Path, readers: bool = True) -> dict[str, Any]:
         reasons.append(f"geometry leap {cont['max_leap_m']:.4f} m > {LEAP_LIMIT_M} m")
     if cont.get("max_kink_rad", 0.0) > KINK_LIMIT_RAD:
         reasons.append(f"heading kink {cont['max_kink_rad']:.4f} rad > {KINK_LIMIT_RAD} rad")
+    negative = result.get("lane_widths", {}).get("negative", [])
+    if negative:
+        w = negative[0]
+        reasons.append(f"{len(negative)} negative lane width record(s), first: road {w['road']} lane {w['lane']} "
+                       f"{w['width']:.3f} m at s={w['s']:.2f}")
     result["reasons"] = reasons
     result["ok"] = not reasons
     return result
+
+
+def lane_widths(odr: Any) -> dict[str, Any]:
+    """Lane width findings: `negative` width records (an error: a lane cannot be narrower than nothing)."""
+    return {"negative": [asdict(w) for w in odr.negative_widths()]}
 
 
 def print_check(result: dict[str, Any], console: Console, max_issues: int = 20) -> None:
@@ -379,6 +420,9 @@ def print_check(result: dict[str, Any], console: Console, max_issues: int = 20) 
         table.add_row("largest paramPoly3 length error (m)", f"{cont['max_length_error_m']:.4f}")
         if "junction_gap" in cont.get("worst", {}):
             table.add_row("largest lane border gap across a junction (m)", f"{cont['max_junction_gap_m']:.4f}")
+    widths = result.get("lane_widths", {})
+    if widths:
+        table.add_row("negative lane width records", str(len(widths["negative"])))
     for rd in result.get("readers", {}).values():
         if not rd["available"]:
             table.add_row("reader", rd["note"])

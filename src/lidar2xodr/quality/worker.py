@@ -11,7 +11,7 @@ from lidar2xodr.quality.readers import RESULT_PREFIX, run_pyxodr
 
 
 def main(argv: list[str]) -> int:
-    reader, path = argv[0], Path(argv[1])
+    path = Path(argv[1])
     from lidar2xodr.opendrive import OpenDriveMap
 
     try:
