@@ -159,8 +159,9 @@ def _steep_map(tmp_path: Path) -> Path:
 def test_reader_warnings_are_reported_verbatim_not_judged(tmp_path: Path) -> None:
     res = check_file(_steep_map(tmp_path))
     assert res["ok"] is True and res["asam"]["errors"] == 0  # the readers never fail the verdict
-    sumo, pyx = res["readers"]["netconvert"], res["readers"]["pyxodr"]
+    sumo, pyx, carla = res["readers"]["netconvert"], res["readers"]["pyxodr"], res["readers"]["carla"]
     assert pyx["available"] and pyx["ok"] and pyx["roads"] == 1 and pyx["max_reference_dev_m"] < 1e-3
+    assert not carla["available"] or (carla["ok"] and carla["lanes_walked"] == 1), carla
     if not sumo["available"]:
         pytest.skip(sumo["note"])
     assert sumo["returncode"] == 0 and not sumo["errors"] and not sumo["ok"]

@@ -442,7 +442,7 @@ def test_classic_junction_on_a_short_branch(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_asam_checker_sumo_and_pyxodr_accept_the_classic_junctions(written, tmp_path: Path) -> None:
-    """The default form: 0 ASAM issues, SUMO 1.28 and pyxodr read it without a warning and join the right lanes."""
+    """The default form: 0 ASAM issues, SUMO 1.28, pyxodr and CARLA read it without a warning, join the right lanes."""
     try:
         find_qc_venv()
     except InputError as exc:
@@ -459,6 +459,11 @@ def test_asam_checker_sumo_and_pyxodr_accept_the_classic_junctions(written, tmp_
         pyx = verdict["readers"]["pyxodr"]
         assert pyx["ok"], (name, pyx["errors"], pyx["warnings"])
         assert pyx["roads"] == 5 and pyx["junctions"] == 1 and pyx["max_reference_dev_m"] <= 0.005
+        carla = verdict["readers"]["carla"]
+        if carla["available"]:  # CARLA walks every lane through the junction and joins the linked roads
+            assert carla["ok"], (name, carla["errors"], carla["warnings"])
+            assert carla["lanes_walked"] == carla["driving_lanes"] > 0 and carla["road_pairs_missing"] == 0
+            assert carla["road_pairs"] >= 4 and carla["max_centre_dev_m"] <= 0.005
     sumo = verdicts["diverge"]["readers"]["netconvert"]
     if not sumo["available"]:
         pytest.skip(sumo["note"])

@@ -27,10 +27,13 @@ Three parts:
   {"available": False, "note": ...}. `pyxodr`: the map loaded and
   everything evaluated (references, lane borders, successors, junction roads); Python warnings and
   printed lines are warnings, exceptions errors; `max_reference_dev_m` is how far its reference
-  points lie from ours. Reported, never part of the verdict: a reader's limits are not the file's
-  fault (SUMO 1.15 cannot read OpenDRIVE 1.8 direct junctions, and warns about a lane that appears
-  at a section change on a two-way road, which the standard requires to be unlinked; see
-  export_sections.py for how our maps avoid it).
+  points lie from ours. `carla`: CARLA's own parser (PyPI carla, offline), the map loaded, a
+  waypoint on every driving lane, a `wp.next()` walk along every lane through sections and links,
+  and its topology against the map's road links (quality/carla_reader.py). pyxodr and CARLA run
+  in child processes: a reader that crashes (CARLA segfaults on a lane link to a missing lane) is
+  an error of that reader, never of `check`. Reported, never part of the verdict: a reader's
+  limits are not the file's fault (SUMO 1.28 warns about a lane that appears at a section change
+  on a two-way road, which the standard requires to be unlinked).
 
 * `lane_widths` (.xodr): `negative` lists every lane width record whose cubic drops below 0 on its
   range (road, section, lane, s and the width there; an error).
@@ -365,7 +368,8 @@ def check_file(path: Path, readers: bool = True) -> dict[str, Any]:
         jobs: dict[str, Future] = {}
         if suffix == ".xodr" and readers:
             jobs = {"netconvert": pool.submit(run_netconvert, path),
-                    "pyxodr": pool.submit(run_in_subprocess, "pyxodr", path)}
+                    "pyxodr": pool.submit(run_in_subprocess, "pyxodr", path),
+                    "carla": pool.submit(run_in_subprocess, "carla", path)}
         if suffix == ".xodr":
             from lidar2xodr.opendrive import OpenDriveMap
 
@@ -430,6 +434,8 @@ def print_check(result: dict[str, Any], console: Console, max_issues: int = 20) 
         text = f"{len(rd['warnings'])} warning(s), {len(rd['errors'])} error(s)"
         if "max_reference_dev_m" in rd:
             text += f", reference within {rd['max_reference_dev_m']:.4f} m of ours"
+        if "lanes_walked" in rd:
+            text += f", {rd['lanes_walked']} of {rd['driving_lanes']} driving lanes walked"
         table.add_row(f"{rd['reader']} {rd['version']}", text)
     console.print(table)
     groups: dict[tuple[str, str], list[dict[str, Any]]] = {}

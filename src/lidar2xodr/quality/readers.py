@@ -217,14 +217,18 @@ def run_in_subprocess(reader: str, path: Path, timeout_s: float = READER_TIMEOUT
     cmd = [sys.executable, "-m", "lidar2xodr.quality.worker", reader, str(Path(path).resolve())]
     names = {"pyxodr": "pyxodr", "carla": "CARLA"}
     try:
+        version = importlib.metadata.version(reader)
+    except importlib.metadata.PackageNotFoundError:
+        version = "?"
+    try:
         proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout_s, check=False)
     except subprocess.TimeoutExpired:
-        return {"available": True, "reader": names[reader], "version": "?", "ok": False, "warnings": [],
+        return {"available": True, "reader": names[reader], "version": version, "ok": False, "warnings": [],
                 "errors": [f"{names[reader]} did not finish within {timeout_s:.0f} s"]}
     for line in proc.stdout.splitlines():
         if line.startswith(RESULT_PREFIX):
             return json.loads(line[len(RESULT_PREFIX):])
     how = f"signal {-proc.returncode}" if proc.returncode < 0 else f"exit code {proc.returncode}"
-    tail = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()][-1:]
-    return {"available": True, "reader": names[reader], "version": "?", "ok": False, "warnings": [],
+    tail = [ln for ln in proc.stderr.strip().splitlines() if ln.strip() and not ln.startswith("WARNING:")][-1:]
+    return {"available": True, "reader": names[reader], "version": version, "ok": False, "warnings": [],
             "errors": [f"{names[reader]} crashed on the map ({how})" + (f": {tail[0]}" if tail else "")]}

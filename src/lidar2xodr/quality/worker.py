@@ -11,14 +11,19 @@ from lidar2xodr.quality.readers import RESULT_PREFIX, run_pyxodr
 
 
 def main(argv: list[str]) -> int:
-    path = Path(argv[1])
+    reader, path = argv[0], Path(argv[1])
     from lidar2xodr.opendrive import OpenDriveMap
 
     try:
         odr = OpenDriveMap.load(path)
     except InputError:
         odr = None
-    result = run_pyxodr(path, odr)
+    if reader == "carla":
+        from lidar2xodr.quality.carla_reader import run_carla
+
+        result = run_carla(path, odr)
+    else:
+        result = run_pyxodr(path, odr)
     sys.stdout.write("\n" + RESULT_PREFIX + json.dumps(result) + "\n")
     sys.stdout.flush()
     return 0
