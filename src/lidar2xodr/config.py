@@ -263,9 +263,6 @@ class ExportConfig(_Section):
     plane_max_offset_m: float = Field(15.0, description="ours: ground planes farther from the reference are ignored")
     junction_blend_m: float = Field(30.0, description="ours: a branch road is bent onto the road it leaves or joins "
                                     "over this length from the junction (or its whole length if shorter)")
-    junction_type: Literal["default", "direct"] = Field(
-        "default", description="ours: 'default' = classic junction with connecting roads (read by every reader, "
-        "SUMO 1.15 included); 'direct' = OpenDRIVE 1.7+ direct junction (no connecting roads)")
     fold_appearing_lanes: bool = Field(True, description="ours: an outer lane that opens from width 0 stays in the "
                                        "section before at width 0 instead of starting a section (SUMO warns about "
                                        "an appearing lane it cannot connect; see export_sections.py)")
