@@ -35,8 +35,10 @@ Three parts:
   limits are not the file's fault (SUMO 1.28 warns about a lane that appears at a section change
   on a two-way road, which the standard requires to be unlinked).
 
-* `lane_widths` (.xodr): `negative` lists every lane width record whose cubic drops below 0 on its
-  range (road, section, lane, s and the width there; an error).
+* `lane_widths` (.xodr, quality/lane_widths.py): `negative` lists every lane width record whose
+  cubic drops below 0 on its range (road, section, lane, s and the width there; an error);
+  `zero_width` and `narrow` the stretches of driving lanes kept at width ~0 or narrower than 1 m
+  (outside their tapers) for more than 30 m (warnings; the numbers are `CheckConfig`'s).
 
 Verdict: `ok` is False when the ASAM checker reports at least one error, when the project's
 OpenDRIVE reader cannot evaluate the geometry (`continuity.error`), a lane width record is
@@ -56,7 +58,6 @@ import os
 import subprocess
 import tempfile
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -65,7 +66,9 @@ from lxml import etree
 from rich.console import Console
 from rich.table import Table
 
+from lidar2xodr.config import CheckConfig
 from lidar2xodr.errors import InputError
+from lidar2xodr.quality.lane_widths import lane_widths
 from lidar2xodr.quality.readers import (
     find_netconvert,
     polyline_distance,
@@ -348,7 +351,7 @@ def continuity(odr: Any) -> dict[str, Any]:
     }
 
 
-def check_file(path: Path, readers: bool = True) -> dict[str, Any]:
+def check_file(path: Path, readers: bool = True, cfg: CheckConfig | None = None) -> dict[str, Any]:
     """Check an .xodr (ASAM + continuity + independent readers) or an .xosc (ASAM); the result always holds `ok`.
 
     The ASAM checker and the readers are child processes started together; the continuity check
@@ -376,7 +379,7 @@ def check_file(path: Path, readers: bool = True) -> dict[str, Any]:
             try:
                 odr = OpenDriveMap.load(path)
                 result["continuity"] = continuity(odr)
-                result["lane_widths"] = lane_widths(odr)
+                result["lane_widths"] = lane_widths(odr, cfg)
             except InputError as exc:
                 result["continuity"] = {"error": str(exc)}
                 reasons.append(f"unreadable geometry: {exc.problem}")
@@ -399,10 +402,6 @@ def check_file(path: Path, readers: bool = True) -> dict[str, Any]:
     result["ok"] = not reasons
     return result
 
-
-def lane_widths(odr: Any) -> dict[str, Any]:
-    """Lane width findings: `negative` width records (an error: a lane cannot be narrower than nothing)."""
-    return {"negative": [asdict(w) for w in odr.negative_widths()]}
 
 
 def print_check(result: dict[str, Any], console: Console, max_issues: int = 20) -> None:
@@ -427,6 +426,8 @@ def print_check(result: dict[str, Any], console: Console, max_issues: int = 20) 
     widths = result.get("lane_widths", {})
     if widths:
         table.add_row("negative lane width records", str(len(widths["negative"])))
+        table.add_row("zero-width / narrow driving lane stretches",
+                      f"{len(widths['zero_width'])} / {len(widths['narrow'])}")
     for rd in result.get("readers", {}).values():
         if not rd["available"]:
             table.add_row("reader", rd["note"])
@@ -451,6 +452,8 @@ def print_check(result: dict[str, Any], console: Console, max_issues: int = 20) 
         console.print(f"  {level}: {message}" + (f" ({where})" if where else ""), highlight=False, soft_wrap=True)
     if len(keys) > max_issues:
         console.print(f"  ... {len(keys) - max_issues} more kind(s) of issue (see --json)")
+    for line in widths.get("warnings", [])[:max_issues]:
+        console.print(f"  lane width warning: {line}", highlight=False, soft_wrap=True)
     for rd in result.get("readers", {}).values():
         for line in (rd.get("errors", []) + rd.get("warnings", []))[:max_issues]:
             console.print(f"  {rd['reader']}: {line}", highlight=False, soft_wrap=True)

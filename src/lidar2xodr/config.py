@@ -309,6 +309,22 @@ class ScenarioConfig(_Section):
     drop_off_map: bool = Field(False, description="ours: drop tracks that never touch the map (default: keep, warn)")
 
 
+class CheckConfig(_Section):
+    """`check`: lane widths a map should not have (issue #13: sliver lanes, zero-width lanes kept long)."""
+
+    narrow_lane_m: float = Field(1.0, description="ours: a driving lane narrower than this holds no car (~1.9 m "
+                                 "wide); warned about where it stays so over more than narrow_lane_max_m")
+    narrow_lane_max_m: float = Field(30.0, description="ours: longest narrow stretch outside a taper not warned "
+                                     "about (about 1 s at motorway speed)")
+    taper_m: float = Field(60.0, description="ours: a lane whose width goes to or from 0 at a lane section's start "
+                           "or end is a taper over its first or last this many metres (compare's lane-graph rule)")
+    zero_width_m: float = Field(0.05, description="ours: a lane narrower than this has zero width: it exists only "
+                                "for a reader's sake (no paint, no room)")
+    zero_width_max_m: float = Field(30.0, description="ours: longest zero-width stretch not warned about (a "
+                                    "taper's first metre is far shorter)")
+    width_step_m: float = Field(0.5, description="ours: lane widths are sampled this often along each section")
+
+
 class Config(_Section):
     extraction: ExtractionConfig = ExtractionConfig()
     markings: MarkingsConfig = MarkingsConfig()
@@ -316,6 +332,7 @@ class Config(_Section):
     export: ExportConfig = ExportConfig()
     evaluation: EvaluationConfig = EvaluationConfig()
     scenario: ScenarioConfig = ScenarioConfig()
+    check: CheckConfig = CheckConfig()
 
     @classmethod
     def load(cls, path: str | Path | None) -> Config:
