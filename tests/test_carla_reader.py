@@ -80,3 +80,15 @@ def test_absent_carla_is_a_note(tmp_path: Path, monkeypatch: pytest.MonkeyPatch)
     monkeypatch.setitem(sys.modules, "carla", None)
     res = run_carla(_two_roads(tmp_path, "absent"), None)
     assert res == {"available": False, "note": res["note"]} and "carla" in res["note"]
+
+
+def test_left_hand_traffic_walks_the_left_lanes_along_s(tmp_path: Path) -> None:
+    """rule="LHT": lane 1 drives along the reference line, so its walk starts at s = 0 and goes on into road 2."""
+    path = _two_roads(tmp_path, "lht", to_lane=1)
+    text = path.read_text().replace('rule="RHT"', 'rule="LHT"').replace('<right><lane id="-1"', '<left><lane id="1"')
+    path.write_text(text.replace("</lane></right>", "</lane></left>"))
+    res = _carla(path)
+    assert res["ok"] and res["lanes_walked"] == res["driving_lanes"] == 2 and res["road_pairs"] == 1, res
+    broken = tmp_path / "lht_broken.xodr"
+    broken.write_text(path.read_text().replace('elementId="2" contactPoint="start"', 'elementId="9"'))
+    assert "road 1 lane 1: no waypoint beyond s=100.00, where the map links the lane on" in _carla(broken)["errors"]

@@ -9,10 +9,11 @@ What a CARLA user meets, checked against what the map itself says (read by the p
   (there is no lane to drive). `max_centre_dev_m` is how far CARLA's waypoint lies from our lane
   centre there; CARLA's y axis is mirrored (Unreal's left-handed frame), so (x, -y) is compared.
 * walk: from each such lane's start (in its driving direction: right lanes along s, left against
-  it), `wp.next(WALK_STEP_M)` must stay on the lane to within one step of the section's end and,
-  where the map links the lane on (to the next section's lane, the next road's, or a junction's
-  connecting road), give a waypoint beyond it, no farther than `JUMP_FACTOR` steps away. A walk
-  that stops short, finds no continuation or jumps is an error naming road, lane and s.
+  it; the other way round on a road with rule="LHT"), `wp.next(WALK_STEP_M)` must stay on the
+  lane to within one step of the section's end and, where the map links the lane on (to the next
+  section's lane, the next road's, or a junction's connecting road), give a waypoint beyond it, no
+  farther than `JUMP_FACTOR` steps away. A walk that stops short, finds no continuation or jumps
+  is an error naming road, lane and s.
 * topology: the pairs of roads `get_topology()` joins must be the pairs the map's own road and
   lane links join between driving lanes (a junction: incoming road to connecting road). A pair the
   map links and CARLA does not is an error; a pair CARLA joins and the map does not, a warning.
@@ -97,7 +98,7 @@ def map_road_pairs(odr: Any) -> set[frozenset[str]]:
 def _walk(cmap: Any, odr: Any, road: Any, k: int, lane: Any) -> str | None:
     """None when CARLA walks the lane through its section and on as the map links it; else the problem."""
     sec = road.lane_sections[k]
-    forward = lane.id < 0
+    forward = (lane.id < 0) != (road.rule.upper() == "LHT")
     eps = min(0.01, (sec.s_end - sec.s) / 4)
     s0 = sec.s + eps if forward else sec.s_end - eps
     wp = cmap.get_waypoint_xodr(int(road.id), lane.id, s0)
