@@ -701,3 +701,11 @@ def test_cross_check_shared_map(shared_data: Path, map_path: Path, tmp_path: Pat
     if unread:
         failures += _check_with_carla(m, unread, samples, map_path)
     assert not failures, f"{len(failures)} disagreements, first: " + "; ".join(failures[:10])
+
+
+def test_rounding_below_zero_is_no_negative_width(tmp_path: Path) -> None:
+    """A taper written with rounded coefficients may end a fraction of a millimetre below 0: not negative."""
+    tiny = load(tmp_path, _width_map(8, '<width sOffset="65" a="3.5" b="-0.10000001"/>'))
+    assert tiny.negative_widths() == []
+    real = load(tmp_path, _width_map(8, '<width sOffset="65" a="3.5" b="-0.1001"/>'))
+    assert [round(w.width, 6) for w in real.negative_widths()] == [-0.0035]

@@ -45,8 +45,9 @@ BOTTS_DOT_M = (0.1, 1.0)
 
 OPENDRIVE_NAMESPACES = ("http://www.opendrive.org", "http://code.asam.net/simulation/standard/opendrive_schema")
 """Namespaces some exporters put on <OpenDRIVE> (the old opendrive.org one, ASAM's 1.8 schema): read as plain."""
-NEGATIVE_WIDTH_TOL_M = 1e-9
-"""A width below -this is negative; above it, rounding of a polynomial that ends at exactly 0."""
+NEGATIVE_WIDTH_TOL_M = 1e-3
+"""A width below -this (1 mm, the project's leap limit) is negative; above it, rounding of the written
+coefficients of a taper that ends at exactly 0 (our exporter's folded tapers dip to -2.3e-7 m)."""
 
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(6)
 _FRESNEL_MAX_ARG = 50.0
