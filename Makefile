@@ -49,7 +49,7 @@ lock: $(TOOLS)/bin/uv
 	$(TOOLS)/bin/uv pip compile --quiet requirements-qc.txt $(LOCK_TARGET) -o $(QC_LOCK)
 
 demo: setup
-	$(BIN)/lidar2xodr demo --out demo-out
+	$(BIN)/lidar2xodr demo -o demo-out
 
 test: setup
 	$(BIN)/python -m pytest -q

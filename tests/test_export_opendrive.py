@@ -94,7 +94,7 @@ ROADS = {
     "extra": lambda: _make_road(2000.0, [(0, 1 / 3000), (2000, 1 / 3000)], extra=EXTRA),
     "twoway": _two_way_road,
 }
-UNFOLDED = ("extra", "twoway")
+FOLDED = ("twoway",)
 
 
 @pytest.fixture(scope="module")
@@ -106,11 +106,11 @@ def written(tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple[LaneMod
         planes = _planes(model) if name == "clothoid5km" else None
         path = out / f"{name}.xodr"
         res[name] = (model, path, export_opendrive(model, planes, ExportConfig(), path))
-    for name in UNFOLDED:  # the lane sections exactly as the LaneModel has them (test_export_sections.py folds them)
+    for name in FOLDED:  # the opt-in fold of appearing lanes into the section before (test_export_sections.py)
         model = ROADS[name]()
-        path = out / f"{name}_unfolded.xodr"
-        res[f"{name}_unfolded"] = (model, path, export_opendrive(model, None, ExportConfig(fold_appearing_lanes=False),
-                                                                 path))
+        path = out / f"{name}_folded.xodr"
+        res[f"{name}_folded"] = (model, path, export_opendrive(model, None, ExportConfig(fold_appearing_lanes=True),
+                                                               path))
     return res
 
 
@@ -162,7 +162,7 @@ def test_reference_line_reproduced_by_both_readers(written, name: str) -> None:
     assert abs(road.length - (model.s[-1] - model.s[0])) < 0.05
 
 
-@pytest.mark.parametrize("name", ["scurve", "clothoid5km", "extra_unfolded", "twoway_unfolded"])
+@pytest.mark.parametrize("name", ["scurve", "clothoid5km", "extra", "twoway"])
 def test_lane_borders_reproduce_boundaries(written, name: str) -> None:
     model, path, summary = written[name]
     sections = OpenDriveMap.load(path).sample(step=0.05)
@@ -179,7 +179,7 @@ def test_lane_borders_reproduce_boundaries(written, name: str) -> None:
 
 
 def test_lane_borders_in_pyxodr(written) -> None:
-    model, path, _ = written["extra_unfolded"]
+    model, path, _ = written["extra"]
     road = RoadNetwork(str(path), resolution=0.2).get_roads()[0]
     assert len(road.lane_sections) == 3
     offset_dev = polyline_distance(_boundary_points(model, model.sections[0], 0), road.lane_offset_line[:, :2])
@@ -232,7 +232,7 @@ def _width(lane: etree._Element, ds: float) -> float:
 
 
 def test_appearing_lane_starts_and_ends_at_zero_width_and_links_both_ways(written) -> None:
-    _, path, _ = written["extra_unfolded"]
+    _, path, _ = written["extra"]
     secs = _sections_xml(path)
     assert [len(s.findall("right/lane")) for s in secs] == [3, 4, 3]
     new = secs[1].find("right/lane[@id='-4']")
@@ -430,8 +430,8 @@ def test_asam_checker_and_independent_readers_accept_the_map(written) -> None:
 
 
 @pytest.mark.slow
-def test_sumo_reads_a_two_way_road_with_an_appearing_lane_once_folded(written) -> None:
-    """Why export_sections.py folds: with the appearing lane in a section of its own SUMO warns.
+def test_sumo_warns_about_an_appearing_lane_unless_folded(written) -> None:
+    """What the opt-in fold (export_sections.py) buys: with the appearing lane in a section of its own SUMO warns.
 
     SUMO (1.15 and 1.28) gives each lane at most one successor, so a lane that appears has no incoming connection;
     it warns when the node has more than one incoming edge, which on a two-way road it always has (the
@@ -440,7 +440,7 @@ def test_sumo_reads_a_two_way_road_with_an_appearing_lane_once_folded(written) -
     """
     from lidar2xodr.check import check_file
 
-    for name, n_warnings in (("twoway", 0), ("twoway_unfolded", 1)):
+    for name, n_warnings in (("twoway_folded", 0), ("twoway", 1)):
         _, path, _ = written[name]
         verdict = check_file(path)
         assert verdict["ok"] and verdict["asam"]["errors"] == 0, verdict["reasons"]
@@ -457,7 +457,7 @@ def test_sumo_reads_a_two_way_road_with_an_appearing_lane_once_folded(written) -
 
 def test_two_way_road_has_left_lanes_on_the_divider(written) -> None:
     """Lane 0 on the divider: left lanes 1, 2 outwards, right lanes -1.. , links only on their own side."""
-    model, path, _ = written["twoway_unfolded"]
+    model, path, _ = written["twoway"]
     root = etree.parse(str(path)).getroot()
     assert root.find("road").get("rule") == "RHT"
     secs = _sections_xml(path)

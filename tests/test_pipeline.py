@@ -69,7 +69,9 @@ def test_same_drive_same_bytes(demo_drive: tuple[Path, Path], tmp_path: Path) ->
 def test_no_markings_is_a_clear_error_and_writes_nothing(demo_drive: tuple[Path, Path], tmp_path: Path) -> None:
     """A threshold nothing passes leaves no markings: one clear error, no map, no temp files."""
     _, drive = demo_drive
-    cfg = Config.model_validate({"extraction": {"auto_threshold": False, "reflectivity_threshold": 1.01}})
+    base = Config.model_validate({"extraction": {"auto_threshold": False}})
+    # above the valid range on purpose (model_copy skips validation): no point of any drive passes
+    cfg = base.model_copy(update={"extraction": base.extraction.model_copy(update={"reflectivity_threshold": 1.01})})
     out = tmp_path / "out" / "map.xodr"
     out.parent.mkdir()
     with pytest.raises(InputError):

@@ -56,7 +56,6 @@ from __future__ import annotations
 import math
 import os
 import subprocess
-import tempfile
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -64,10 +63,13 @@ from typing import Any
 import numpy as np
 from lxml import etree
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from lidar2xodr.config import CheckConfig
 from lidar2xodr.errors import InputError
+from lidar2xodr.fileio import temp_dir
+from lidar2xodr.lifetime import child_preexec
 from lidar2xodr.quality.lane_widths import lane_widths
 from lidar2xodr.quality.readers import (
     find_netconvert,
@@ -168,13 +170,14 @@ def run_asam_checker(path: Path, venv: Path | None = None) -> dict[str, Any]:
     """Run the ASAM checker bundle matching the file's suffix and return its parsed result."""
     module, bundle = _CHECKERS[path.suffix.lower()]
     venv = venv or find_qc_venv()
-    with tempfile.TemporaryDirectory(prefix="lidar2xodr-qc-") as tmp:
+    with temp_dir(kind="qc") as tmp:
         cfg, result = Path(tmp) / "config.xml", Path(tmp) / "result.xqar"
         checked, namespace = _plain_copy(path, Path(tmp)) if module == "qc_opendrive" else (path, None)
         _write_config(cfg, checked.resolve(), bundle, result)
         try:
             proc = subprocess.run([str(venv / "bin" / "python"), "-m", module, "-c", str(cfg)], cwd=tmp,
-                                  capture_output=True, text=True, timeout=QC_TIMEOUT_S, check=False)
+                                  capture_output=True, text=True, timeout=QC_TIMEOUT_S, check=False,
+                                  preexec_fn=child_preexec())
         except subprocess.TimeoutExpired:
             raise InputError(path, f"the ASAM checker did not finish within {QC_TIMEOUT_S} s") from None
         except OSError as exc:
@@ -407,7 +410,7 @@ def check_file(path: Path, readers: bool = True, cfg: CheckConfig | None = None)
 def print_check(result: dict[str, Any], console: Console, max_issues: int = 20) -> None:
     """A short human-readable verdict: counts, continuity, the first issues."""
     asam = result["asam"]
-    table = Table(title=f"check {result['file']}", show_header=True)
+    table = Table(title=escape(f"check {result['file']}"), show_header=True)
     table.add_column("item")
     table.add_column("value", justify="right")
     table.add_row(f"ASAM errors ({asam['checker']})", str(asam["errors"]))
@@ -449,16 +452,17 @@ def print_check(result: dict[str, Any], console: Console, max_issues: int = 20) 
         where = f"row {first['row']}" if "row" in first else first.get("xpath", "")
         more = len(groups[(level, message)]) - 1
         where += f" and {more} more place(s)" if more else ""
-        console.print(f"  {level}: {message}" + (f" ({where})" if where else ""), highlight=False, soft_wrap=True)
+        console.print(f"  {level}: {message}" + (f" ({where})" if where else ""), highlight=False, soft_wrap=True,
+                      markup=False)
     if len(keys) > max_issues:
         console.print(f"  ... {len(keys) - max_issues} more kind(s) of issue (see --json)")
     for line in widths.get("warnings", [])[:max_issues]:
-        console.print(f"  lane width warning: {line}", highlight=False, soft_wrap=True)
+        console.print(f"  lane width warning: {line}", highlight=False, soft_wrap=True, markup=False)
     for rd in result.get("readers", {}).values():
         for line in (rd.get("errors", []) + rd.get("warnings", []))[:max_issues]:
-            console.print(f"  {rd['reader']}: {line}", highlight=False, soft_wrap=True)
+            console.print(f"  {rd['reader']}: {line}", highlight=False, soft_wrap=True, markup=False)
     if asam["checkers_skipped_for_version"]:
         console.print(f"  note: {asam['checkers_skipped_for_version']} ASAM rule(s) were skipped because the file's "
                       "version predates them (OpenDRIVE >= 1.7 / OpenSCENARIO >= 1.2 gets them all)", highlight=False)
-    verdict = "[bold green]OK[/]" if result["ok"] else "[bold red]NOT OK[/]: " + "; ".join(result["reasons"])
+    verdict = "[bold green]OK[/]" if result["ok"] else "[bold red]NOT OK[/]: " + escape("; ".join(result["reasons"]))
     console.print(verdict)

@@ -1,23 +1,30 @@
 """The `lidar2xodr` command line: one thin typer command per pipeline stage.
 
-Commands import their stage lazily so `--help` stays fast. Bad input raises InputError, which
-becomes one line on stderr and exit code 2 (never a traceback). Any other exception is a bug of
-ours: it becomes one line naming the exception and exit code 3, and the traceback is shown only
-with LIDAR2XODR_DEBUG=1 (outputs are written atomically, so nothing half-written is left).
+Commands import their stage lazily so `--help` stays fast. Exit codes (the README's promise):
+0 done; 1 `check` found errors in the file; 2 bad input, bad usage or an unusable environment
+(a full disk, a read-only target): one line on stderr naming the user's file, never a traceback;
+3 a bug of ours: one line naming the exception (LIDAR2XODR_DEBUG=1 shows the traceback);
+130 interrupted (Ctrl-C), 143 terminated (SIGTERM). Whatever the exit code, a command that does
+not end with 0 (or 1) writes none of its outputs and changes no file that was there before.
 """
 
 from __future__ import annotations
 
+import contextlib
+import enum
+import errno
 import functools
 import json
 import os
 import sys
-from collections.abc import Callable
+import warnings
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, TypeVar
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 
 from lidar2xodr import __version__
 from lidar2xodr.errors import InputError, OutputError
@@ -35,27 +42,123 @@ out = Console()
 
 F = TypeVar("F", bound=Callable[..., Any])
 
+# errors of the user's environment, not of lidar2xodr: exit code 2 like bad input
+_ENVIRONMENT_ERRNOS = {errno.ENOSPC, errno.EROFS, errno.EACCES, errno.EPERM, errno.EDQUOT, errno.EISDIR,
+                       errno.ENOTDIR, errno.ENAMETOOLONG, errno.EFBIG, errno.EIO, errno.ENOENT, errno.EEXIST,
+                       errno.ENOTEMPTY, errno.EXDEV, errno.EMFILE, errno.ENFILE}
+
+
+class Odometry(str, enum.Enum):
+    """Where the scans' poses come from."""
+
+    auto = "auto"
+    gnss = "gnss"
+    lidar = "lidar"
+
+
+class Format(str, enum.Enum):
+    """The recording formats of `datasets.FORMATS` (a test keeps the two the same)."""
+
+    drive = "drive"
+    aimotive = "aimotive"
+    kitti_raw = "kitti_raw"
+    rosbag = "rosbag"
+    folder = "folder"
+
+
+class Sensor(str, enum.Enum):
+    """The simulator's sensor presets."""
+
+    livox_horizon = "livox-horizon"
+    pandar64 = "pandar64"
+
+
+class Traffic(str, enum.Enum):
+    """The simulator's traffic densities."""
+
+    none = "none"
+    low = "low"
+    mid = "mid"
+    high = "high"
+
+
+def _opt(default: Any, *names: str, **kwargs: Any) -> Any:
+    """A typer option that shows no "[default: None]" (defaults worth showing are in the help text)."""
+    return typer.Option(default, *names, show_default=False, **kwargs)
+
+
+def _arg(**kwargs: Any) -> Any:
+    """A required typer argument."""
+    return typer.Argument(..., show_default=False, **kwargs)
+
+
+def one_line(text: object) -> str:
+    """A message as one line (multi-line YAML or checker errors included)."""
+    return " ".join(str(text).split())
+
+
+def _say(prefix: str, text: object) -> None:
+    """One line on stderr; the text is escaped, so `[/data/run1]` is printed, not parsed as markup."""
+    console.print(f"{prefix} {escape(one_line(text))}".rstrip(), highlight=False, soft_wrap=True)
+
+
+def warn(text: object) -> None:
+    _say("[yellow]warning:[/]", text)
+
+
+@contextlib.contextmanager
+def _warnings_as_one_line() -> Iterator[None]:
+    """Python warnings (numpy's "invalid value encountered", with source paths) become one summary line."""
+    seen: dict[str, int] = {}
+
+    def collect(message: Warning | str, category: type[Warning], *_args: Any, **_kwargs: Any) -> None:
+        key = f"{category.__name__}: {one_line(message)}"
+        seen[key] = seen.get(key, 0) + 1
+
+    with warnings.catch_warnings():
+        warnings.showwarning = collect
+        try:
+            yield
+        finally:
+            if seen:
+                first = next(iter(seen))
+                more = f" and {len(seen) - 1} other kind(s)" if len(seen) > 1 else ""
+                warn(f"{sum(seen.values())} library warning(s) ({first}{more}); they did not stop the run")
+
+
+def _environment_problem(exc: OSError) -> str:
+    where = exc.filename if exc.filename is not None else "output"
+    return f"{where}: {exc.strerror or exc}"
+
 
 def _clean_errors(fn: F) -> F:
-    """Turn expected failures into one line and exit code 2."""
+    """Turn expected failures into one line and exit code 2; SIGTERM and Ctrl-C into 143 and 130."""
+    from lidar2xodr.lifetime import Terminated, terminate_as_interrupt
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
-            return fn(*args, **kwargs)
+            with terminate_as_interrupt(), _warnings_as_one_line():
+                return fn(*args, **kwargs)
         except (InputError, OutputError) as exc:
-            console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
+            _say("[bold red]error:[/]", exc)
             raise typer.Exit(2) from None
+        except Terminated:
+            _say("[bold red]terminated[/]", "(SIGTERM); nothing written")
+            raise typer.Exit(143) from None
         except KeyboardInterrupt:
-            console.print("[bold red]interrupted[/]")
+            _say("[bold red]interrupted[/]", "nothing written")
             raise typer.Exit(130) from None
         except (typer.Exit, typer.Abort, typer.BadParameter):
             raise
         except Exception as exc:
             if os.environ.get("LIDAR2XODR_DEBUG"):
                 raise
-            console.print(f"[bold red]internal error:[/] {type(exc).__name__}: {exc} (a bug in lidar2xodr, "
-                          "please report it; LIDAR2XODR_DEBUG=1 shows the traceback)", highlight=False, soft_wrap=True)
+            if isinstance(exc, OSError) and exc.errno in _ENVIRONMENT_ERRNOS:
+                _say("[bold red]error:[/]", _environment_problem(exc))
+                raise typer.Exit(2) from None
+            _say("[bold red]internal error:[/]", f"{type(exc).__name__}: {exc} (a bug in lidar2xodr, please "
+                 "report it; LIDAR2XODR_DEBUG=1 shows the traceback)")
             raise typer.Exit(3) from None
 
     return wrapper  # type: ignore[return-value]
@@ -80,36 +183,45 @@ def write_json(path: Path, data: dict[str, Any]) -> None:
     write_text(path, json.dumps(data, indent=2, sort_keys=True) + "\n")
 
 
-ConfigOpt = typer.Option(None, "--config", "-c", help="YAML configuration (see README).")
+def _outputs(files: list[Path | None], folders: list[tuple[Path | None, str]] | None = None) -> None:
+    """Refuse unusable outputs before any work (see pipeline.prepare_outputs)."""
+    from lidar2xodr.pipeline import prepare_outputs
+
+    prepare_outputs(files, folders or [])
 
 
-@app.command()
+ConfigOpt = _opt(None, "--config", "-c", help="YAML configuration (see README).")
+
+
+@app.command(epilog="Example: lidar2xodr compare map.xodr truth.xodr --json metrics.json")
 @_clean_errors
 def compare(
-    generated: Path = typer.Argument(..., help="The generated .xodr."),
-    reference: Path = typer.Argument(..., help="The reference .xodr (ground truth)."),
-    json_out: Path | None = typer.Option(None, "--json", help="Write the metrics as JSON."),
+    generated: Path = _arg(help="The generated .xodr."),
+    reference: Path = _arg(help="The reference .xodr (ground truth)."),
+    json_out: Path | None = _opt(None, "--json", help="Write the metrics as JSON."),
     config: Path | None = ConfigOpt,
 ) -> None:
     """The paper's lateral distance between two maps: RMSE, mean, sigma, lane count, widths, coverage."""
     from lidar2xodr.config import Config
     from lidar2xodr.evaluation import compare_maps, print_metrics
 
+    _outputs([json_out])
     metrics = compare_maps(generated, reference, Config.load(config).evaluation)
-    print_metrics(metrics, out)
     if json_out:
         write_json(json_out, metrics)
+    print_metrics(metrics, out)
 
 
-@app.command()
+@app.command(epilog="Example: lidar2xodr check map.xodr --json verdict.json")
 @_clean_errors
 def check(
-    path: Path = typer.Argument(..., help="An .xodr map or an .xosc scenario."),
-    json_out: Path | None = typer.Option(None, "--json", help="Write the verdict as JSON."),
+    path: Path = _arg(help="An .xodr map or an .xosc scenario."),
+    json_out: Path | None = _opt(None, "--json", help="Write the verdict as JSON."),
 ) -> None:
     """ASAM quality checker plus our continuity checks. Exit code 1 when the file has errors."""
     from lidar2xodr.check import check_file, print_check
 
+    _outputs([json_out])
     result = check_file(path)
     if json_out:
         write_json(json_out, result)
@@ -118,45 +230,50 @@ def check(
         raise typer.Exit(1)
 
 
-@app.command()
+@app.command(epilog="Example: lidar2xodr build drive/ -o map.xodr --report report/ --scenario map.xosc")
 @_clean_errors
 def build(
-    drive: Path = typer.Argument(..., help="A drive: drive directory, scan folder, KITTI, bag/MCAP, aiMotive."),
-    output: Path = typer.Option(..., "--output", "-o", help="The OpenDRIVE map to write."),
-    report: Path | None = typer.Option(None, "--report", help="Write an HTML report with pictures here."),
-    odometry: str | None = typer.Option(None, "--odometry", help="gnss | lidar | auto (default auto)."),
-    data_format: str | None = typer.Option(None, "--format", help="Force the reader (see README)."),
-    scenario: Path | None = typer.Option(None, "--scenario", help="Also write the OpenSCENARIO here."),
-    keep_intermediate: Path | None = typer.Option(
-        None, "--keep-intermediate", help="Keep markings.ply and lanes.json in this folder."
+    drive: Path = _arg(help="A drive: drive directory, scan folder, KITTI, bag/MCAP, aiMotive."),
+    output: Path = _opt(..., "--output", "-o", help="The OpenDRIVE map to write."),
+    report: Path | None = _opt(None, "--report", help="Write an HTML report with pictures here."),
+    odometry: Odometry | None = _opt(None, "--odometry", help="Pose source (default: from config, auto)."),
+    data_format: Format | None = _opt(None, "--format", help="Force the reader (default: detected)."),
+    scenario: Path | None = _opt(None, "--scenario", help="Also write the OpenSCENARIO here."),
+    keep_intermediate: Path | None = _opt(
+        None, "--keep-intermediate", help="Keep markings.ply and lanes.json in this (new or empty) folder."
     ),
     allow_invalid: bool = typer.Option(False, "--allow-invalid", help="Write the map even if it fails check."),
     config: Path | None = ConfigOpt,
+    topic: str | None = _opt(None, "--topic", help="PointCloud2 topic of a bag (when it has several)."),
+    pose_topic: str | None = _opt(None, "--pose-topic", help="Pose topic of a bag (when it has several)."),
+    intensity_scale: float | None = _opt(None, "--intensity-scale",
+                                         help="Raw intensity that means 100 % (folders, bags)."),
 ) -> None:
     """The whole pipeline: extract markings, build lanes, export a checked OpenDRIVE map."""
     from lidar2xodr.config import Config
-    from lidar2xodr.pipeline import BuildPipeline
+    from lidar2xodr.pipeline import BuildPipeline, prepare_outputs
 
+    prepare_outputs([output, scenario], [(report, "report"), (keep_intermediate, "intermediate")])
     cfg = Config.load(config)
     if odometry:
-        if odometry not in ("auto", "gnss", "lidar"):
-            raise InputError("--odometry", f"unknown value {odometry!r} (gnss, lidar or auto)")
-        cfg = cfg.model_copy(update={"extraction": cfg.extraction.model_copy(update={"odometry": odometry})})
+        cfg = cfg.model_copy(update={"extraction": cfg.extraction.model_copy(update={"odometry": odometry.value})})
     result = BuildPipeline(
-        drive, output, cfg, data_format=data_format, report_dir=report, scenario=scenario,
-        keep_intermediate=keep_intermediate, allow_invalid=allow_invalid, console=console,
+        drive, output, cfg, data_format=data_format.value if data_format else None, report_dir=report,
+        scenario=scenario, keep_intermediate=keep_intermediate, allow_invalid=allow_invalid, console=console,
+        topic=topic, pose_topic=pose_topic, intensity_scale=intensity_scale,
     ).run()
     from lidar2xodr.pipeline import print_summary
 
     print_summary(result, out)
 
 
-@app.command()
+@app.command(epilog="Example: lidar2xodr demo -o demo-out --length-m 1000")
 @_clean_errors
 def demo(
-    out_dir: Path = typer.Option(Path("demo-out"), "--out", help="Where the demo writes everything."),
+    out_dir: Path = typer.Option(Path("demo-out"), "--output", "-o", help="Where the demo writes everything (a "
+                                 "new or empty folder, or an earlier demo's)."),
     length_m: float = typer.Option(3000.0, "--length-m", help="Length of the simulated drive."),
-    seed: int = typer.Option(0, "--seed"),
+    seed: int = typer.Option(0, "--seed", help="Seed of every random choice."),
 ) -> None:
     """Simulate a drive on the project's own demo road, build the map, check it, compare with the truth."""
     from lidar2xodr.pipeline import run_demo
@@ -164,23 +281,25 @@ def demo(
     run_demo(out_dir, length_m=length_m, seed=seed, console=console, out=out)
 
 
-@app.command()
+@app.command(epilog="Example: lidar2xodr scenario drive/ --map map.xodr -o drive.xosc")
 @_clean_errors
 def scenario(
-    drive: Path = typer.Argument(..., help="Drive folder or track file: objects.csv, detections, aiMotive, A9 CSV."),
-    map_path: Path = typer.Option(..., "--map", help="The OpenDRIVE map to place the traffic on."),
-    out_path: Path = typer.Option(..., "--out", "-o", help="The OpenSCENARIO file to write (.xosc)."),
-    ego_path: Path | None = typer.Option(None, "--ego", help="Ego poses when the drive has none: poses.csv "
+    drive: Path = _arg(help="Drive folder or track file: objects.csv, detections, aiMotive, A9 CSV."),
+    map_path: Path = _opt(..., "--map", help="The OpenDRIVE map to place the traffic on."),
+    out_path: Path = _opt(..., "--output", "-o", help="The OpenSCENARIO file to write (.xosc)."),
+    ego_path: Path | None = _opt(None, "--ego", help="Ego poses when the drive has none: poses.csv "
                                           "layout or the extraction's *.trajectory.csv (LiDAR odometry)."),
-    json_out: Path | None = typer.Option(None, "--json", help="Write the summary as JSON."),
+    json_out: Path | None = _opt(None, "--json", help="Write the summary as JSON."),
     config: Path | None = ConfigOpt,
 ) -> None:
     """OpenSCENARIO of the recorded traffic on a map, with cut-ins, cut-outs and lane changes."""
     from lidar2xodr.config import Config
     from lidar2xodr.export_scenario import export_scenario, print_summary
+    from lidar2xodr.fileio import staged_outputs
     from lidar2xodr.opendrive import OpenDriveMap
     from lidar2xodr.tracks import load_tracks, read_poses_csv
 
+    _outputs([out_path, json_out])
     cfg = Config.load(config)
     ego = read_poses_csv(ego_path) if ego_path else None
     geo = OpenDriveMap.load(map_path).geo_reference
@@ -188,22 +307,23 @@ def scenario(
     ego = ego if ego is not None else tracks.ego
     if ego is None:
         raise InputError(drive, "no ego trajectory: the drive has no poses.csv; pass --ego POSES.csv")
-    summary = export_scenario(ego, tracks, map_path, out_path, cfg)
+    with staged_outputs():
+        summary = export_scenario(ego, tracks, map_path, out_path, cfg)
+        if json_out:
+            write_json(json_out, summary.to_dict())
     print_summary(summary, out, console)
-    if json_out:
-        write_json(json_out, summary.to_dict())
 
 
-@app.command()
+@app.command(epilog="Example: lidar2xodr simulate map.xodr drive/ --length-m 2000 --traffic high --seed 1")
 @_clean_errors
 def simulate(
-    map_path: Path = typer.Argument(..., metavar="MAP.xodr", help="The OpenDRIVE map to drive on."),
-    out_dir: Path = typer.Argument(..., metavar="OUT_DIR", help="The drive directory to write."),
-    start_road: str | None = typer.Option(None, "--start-road", help="First road (default: longest chain)."),
+    map_path: Path = _arg(metavar="MAP.xodr", help="The OpenDRIVE map to drive on."),
+    out_dir: Path = _arg(metavar="OUT_DIR", help="The drive directory to write."),
+    start_road: str | None = _opt(None, "--start-road", help="First road (default: longest chain)."),
     speed_kmh: float = typer.Option(110.0, "--speed-kmh", help="Mean desired ego speed."),
-    length_m: float | None = typer.Option(None, "--length-m", help="Drive length (default: one pass)."),
-    sensor: str = typer.Option("livox-horizon", "--sensor", help="livox-horizon | pandar64."),
-    traffic: str = typer.Option("mid", "--traffic", help="none | low | mid | high."),
+    length_m: float | None = _opt(None, "--length-m", help="Drive length (default: one pass)."),
+    sensor: Sensor = typer.Option(Sensor.livox_horizon, "--sensor", help="The simulated sensor."),
+    traffic: Traffic = typer.Option(Traffic.mid, "--traffic", help="Density of the other road users."),
     gnss_noise_m: float = typer.Option(0.05, "--gnss-noise-m", help="GNSS sigma per horizontal axis (m)."),
     gnss_outage: bool = typer.Option(False, "--gnss-outage", help="Add GNSS outages with INS drift."),
     seed: int = typer.Option(0, "--seed", help="Seed of every random choice."),
@@ -218,7 +338,9 @@ def simulate(
     from lidar2xodr.simulation import SimOptions
     from lidar2xodr.simulation import simulate as run_simulation
 
-    raw = dict(start_road=start_road, speed_kmh=speed_kmh, length_m=length_m, sensor=sensor, traffic=traffic,
+    _outputs([], [(out_dir, "drive")])
+    raw = dict(start_road=start_road, speed_kmh=speed_kmh, length_m=length_m, sensor=sensor.value,
+               traffic=traffic.value,
                gnss_noise_m=gnss_noise_m, gnss_outage=gnss_outage, seed=seed, rosbag=rosbag, preview=preview,
                roadside=roadside)
     try:
@@ -231,23 +353,22 @@ def simulate(
     out.print(f"wrote {s.out_dir}: {s.scans} scans, {s.points:,} points, {s.length_m / 1000:.2f} km in "
               f"{s.duration_s:.0f} s ({s.mean_speed_kmh:.0f} km/h), {s.passes} pass(es) over roads "
               f"{', '.join(s.roads[:8])}{' ...' if len(s.roads) > 8 else ''}; {s.vehicles} vehicles seen, "
-              f"{s.lane_changes} ego lane changes")
-    out.print(f"preview: {s.preview}")
+              f"{s.lane_changes} ego lane changes", markup=False, highlight=False)
+    out.print(f"preview: {s.preview}", markup=False, highlight=False)
 
 
 
-@app.command()
+@app.command(epilog="Example: lidar2xodr extract drive/ -o markings.ply")
 @_clean_errors
 def extract(
-    drive: Path = typer.Argument(..., metavar="DRIVE", help="Recorded drive: drive dir, scan folder, KITTI raw, "
+    drive: Path = _arg(metavar="DRIVE", help="Recorded drive: drive dir, scan folder, KITTI raw, "
                                  "ROS bag / MCAP, aiMotive sequence."),
-    output: Path = typer.Option(..., "--output", "-o", help="The marking cloud to write (.ply + sidecars)."),
-    format: str | None = typer.Option(None, "--format", help="drive | aimotive | kitti_raw | rosbag | folder "
-                                         "(default: detected)."),
-    odometry: str | None = typer.Option(None, "--odometry", help="auto | gnss | lidar (default: from config)."),
-    topic: str | None = typer.Option(None, "--topic", help="PointCloud2 topic of a bag."),
-    pose_topic: str | None = typer.Option(None, "--pose-topic", help="Pose topic of a bag."),
-    intensity_scale: float | None = typer.Option(None, "--intensity-scale",
+    output: Path = _opt(..., "--output", "-o", help="The marking cloud to write (.ply + sidecars)."),
+    format: Format | None = _opt(None, "--format", help="Force the reader (default: detected)."),
+    odometry: Odometry | None = _opt(None, "--odometry", help="Pose source (default: from config, auto)."),
+    topic: str | None = _opt(None, "--topic", help="PointCloud2 topic of a bag."),
+    pose_topic: str | None = _opt(None, "--pose-topic", help="Pose topic of a bag."),
+    intensity_scale: float | None = _opt(None, "--intensity-scale",
                                                     help="Raw intensity that means 100 % (folders, bags)."),
     config: Path | None = ConfigOpt,
 ) -> None:
@@ -255,21 +376,19 @@ def extract(
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     from lidar2xodr.config import Config
-    from lidar2xodr.datasets import FORMATS, open_dataset
+    from lidar2xodr.datasets import open_dataset
     from lidar2xodr.extraction import ExtractionReport, extract_markings
     from lidar2xodr.markings_io import save_markings
 
-    if format is not None and format not in FORMATS:
-        raise InputError("--format", f"unknown format {format!r} (known: {', '.join(FORMATS)})")
-    if odometry is not None and odometry not in ("auto", "gnss", "lidar"):
-        raise InputError("--odometry", f"must be auto, gnss or lidar, got {odometry!r}")
+    _outputs([output])
     cfg = Config.load(config).extraction
     if odometry is not None:
-        cfg = cfg.model_copy(update={"odometry": odometry})
-    dataset = open_dataset(drive, format, topic=topic, pose_topic=pose_topic, intensity_scale=intensity_scale)
+        cfg = cfg.model_copy(update={"odometry": odometry.value})
+    dataset = open_dataset(drive, format.value if format else None, topic=topic, pose_topic=pose_topic,
+                           intensity_scale=intensity_scale)
     rep = ExtractionReport()
     with Progress(TextColumn("extract"), BarColumn(), MofNCompleteColumn(), TextColumn("scans"),
-                  TimeRemainingColumn(), console=console, transient=True) as bar:
+                  TimeRemainingColumn(), console=console, transient=True, disable=not console.is_terminal) as bar:
         task = bar.add_task("extract", total=len(dataset))
         cloud = extract_markings(dataset, cfg, progress=lambda n: bar.advance(task, n), report=rep)
     save_markings(cloud, output)
@@ -284,26 +403,28 @@ def extract(
               f"objects ({rep.moving_removed / max(rep.marking_points_raw, 1):.2%}) removed; "
               f"{rep.odometry} poses{speed}, {rep.drive_length_m:.0f} m "
               f"in {rep.duration_s:.1f} s; {rep.points_read / max(rep.wall_s, 1e-9):,.0f} points/s, "
-              f"{rtf:.2f}x real time")
+              f"{rtf:.2f}x real time", markup=False, highlight=False)
     for warning in rep.warnings:
-        console.print(f"[yellow]warning:[/] {warning}", highlight=False, soft_wrap=True)
+        warn(warning)
 
 
-@app.command()
+@app.command(epilog="Example: lidar2xodr lanes markings.ply -o lanes.json --report pictures/")
 @_clean_errors
 def lanes(
-    markings: Path = typer.Argument(..., help="The marking cloud (markings.ply with its sidecars, from extract)."),
-    output: Path = typer.Option(..., "--output", "-o", help="The lane model to write (lanes.json)."),
-    report: Path | None = typer.Option(None, "--report", help="Write bird's-eye pictures (PNG) into this folder."),
+    markings: Path = _arg(help="The marking cloud (markings.ply with its sidecars, from extract)."),
+    output: Path = _opt(..., "--output", "-o", help="The lane model to write (lanes.json)."),
+    report: Path | None = _opt(None, "--report", help="Write bird's-eye pictures (PNG) into this folder."),
     config: Path | None = ConfigOpt,
 ) -> None:
     """Lanes from markings alone (paper Alg. 1 and 2): candidates, superlines, boundaries, sections."""
     from lidar2xodr.branches import build_network, save_network
     from lidar2xodr.config import Config
+    from lidar2xodr.fileio import atomic_dir, staged_outputs
     from lidar2xodr.lanes import build_lane_model
     from lidar2xodr.markings import find_candidates
     from lidar2xodr.markings_io import load_markings
 
+    _outputs([output], [(report, "report")])
     cfg = Config.load(config)
     cloud = load_markings(markings)
     if len(cloud.xyz) == 0:
@@ -311,26 +432,30 @@ def lanes(
     candidates = find_candidates(cloud.xyz, cfg.markings)
     model = build_lane_model(cloud, candidates, cfg.lanes, where=str(markings))
     network = build_network(cloud, model, cfg.lanes, cfg.markings, where=str(markings))
-    save_network(network, output)
+    pictures: list[Path] = []
+    with staged_outputs():
+        save_network(network, output)
+        if report is not None:
+            from lidar2xodr.lanes_report import write_lanes_report
+
+            with atomic_dir(report, kind="report") as tmp:
+                pictures = [report / Path(p).relative_to(tmp) for p in write_lanes_report(cloud, model, tmp)]
     counts = ", ".join(f"{len(sec.boundary_ids) - 1} from {sec.s_start:.0f} m" for sec in model.sections)
     out.print(f"wrote {output}: {model.s[-1]:.0f} m of road, {len(candidates)} candidates, "
               f"{len(model.boundaries)} boundaries, lanes {counts}; {len(network.roads)} road(s) after "
-              f"junctions", highlight=False)
-    if report is not None:
-        from lidar2xodr.lanes_report import write_lanes_report
-
-        for path in write_lanes_report(cloud, model, report):
-            out.print(f"wrote {path}", highlight=False)
+              f"junctions", highlight=False, markup=False)
+    for path in pictures:
+        out.print(f"wrote {path}", highlight=False, markup=False)
     for warning in network.warnings:
-        console.print(f"[yellow]warning:[/] {warning}", highlight=False, soft_wrap=True)
+        warn(warning)
 
 
-@app.command()
+@app.command(epilog="Example: lidar2xodr export lanes.json -o map.xodr --markings markings.ply")
 @_clean_errors
 def export(
-    lanes_json: Path = typer.Argument(..., help="The lane model (lanes.json, from `lanes` or --keep-intermediate)."),
-    output: Path = typer.Option(..., "--output", "-o", help="The OpenDRIVE map to write."),
-    markings: Path | None = typer.Option(
+    lanes_json: Path = _arg(help="The lane model (lanes.json, from `lanes` or --keep-intermediate)."),
+    output: Path = _opt(..., "--output", "-o", help="The OpenDRIVE map to write."),
+    markings: Path | None = _opt(
         None, "--markings", help="markings.ply whose ground planes give the superelevation (else none)."
     ),
     allow_invalid: bool = typer.Option(False, "--allow-invalid", help="Write the map even if it fails check."),
@@ -342,11 +467,31 @@ def export(
     from lidar2xodr.markings_io import load_markings
     from lidar2xodr.pipeline import _verdict_line, write_checked_map
 
+    _outputs([output])
+    cfg = Config.load(config)
     model = load_network(lanes_json)
     planes = load_markings(markings).planes if markings else None
-    summary, verdict = write_checked_map(model, planes, Config.load(config), output, allow_invalid, where=lanes_json)
+    summary, verdict = write_checked_map(model, planes, cfg, output, allow_invalid, where=lanes_json)
     out.print(f"wrote {output}: {summary.length_m:.0f} m, {summary.pieces} paramPoly3 pieces, "
-              f"{summary.lane_sections} lane sections; check: {_verdict_line(verdict)}", highlight=False)
+              f"{summary.lane_sections} lane sections; check: {_verdict_line(verdict)}", highlight=False, markup=False)
+
+
+@app.command(name="config", epilog="Example: lidar2xodr config --show -c my.yaml > effective.yaml")
+@_clean_errors
+def config_cmd(
+    show: bool = typer.Option(False, "--show", help="Print the effective configuration as YAML."),
+    config: Path | None = ConfigOpt,
+) -> None:
+    """The configuration: the defaults with the --config file applied, as YAML (every field of the README)."""
+    import yaml
+
+    from lidar2xodr.config import Config
+
+    if not show:
+        raise typer.BadParameter("nothing to do: pass --show", param_hint="--show")
+    cfg = Config.load(config)
+    out.print(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False), end="", markup=False,
+              highlight=False)
 
 
 if __name__ == "__main__":  # pragma: no cover

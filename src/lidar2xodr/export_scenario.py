@@ -47,6 +47,7 @@ from typing import Any
 import numpy as np
 from lxml import etree
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 from scenariogeneration import xosc
 from scipy.spatial import cKDTree
@@ -54,7 +55,7 @@ from scipy.spatial import cKDTree
 from lidar2xodr.config import Config, ScenarioConfig
 from lidar2xodr.data import Trajectory
 from lidar2xodr.errors import InputError
-from lidar2xodr.fileio import write_bytes
+from lidar2xodr.fileio import staged, write_bytes
 from lidar2xodr.opendrive import OpenDriveMap
 from lidar2xodr.tracks import Track, TrackSet
 
@@ -400,7 +401,7 @@ def export_scenario(
     """Write the OpenSCENARIO of the recording (see the module doc) atomically and summarise it."""
     scfg = cfg.scenario if isinstance(cfg, Config) else (cfg or ScenarioConfig())
     map_path, out_path = Path(map_path), Path(out_path)
-    odr = OpenDriveMap.load(map_path)
+    odr = OpenDriveMap.load(staged(map_path))  # a map written in the same build is still staged
     index = MapIndex(odr, scfg.map_sample_step_m, scfg.off_map_margin_m)
     warnings = list(tracks.warnings)
     counts: dict[str, int] = {}
@@ -561,7 +562,7 @@ def print_summary(summary: ScenarioSummary, out: Console, err: Console) -> None:
     table = Table(title=f"scenario {summary.path}", show_header=True)
     table.add_column("item")
     table.add_column("value", justify="right")
-    table.add_row("map", str(summary.map_path))
+    table.add_row("map", escape(str(summary.map_path)))
     table.add_row("duration", f"{summary.duration_s:.2f} s")
     table.add_row("entities (incl. ego)", str(len(summary.entities)))
     table.add_row("appear later / leave early", f"{len(summary.late_entities)} / {len(summary.removed_entities)}")

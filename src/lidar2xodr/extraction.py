@@ -1020,8 +1020,11 @@ class _Job:
 _JOB: _Job | None = None
 
 
-def _pool_init(job: _Job) -> None:
+def _pool_init(job: _Job, parent_pid: int) -> None:
+    from lidar2xodr.lifetime import die_with_parent
+
     global _JOB
+    die_with_parent(parent_pid)  # a killed build takes its workers with it
     _JOB = job
 
 
@@ -1063,7 +1066,7 @@ def _filtered(dataset: Dataset, cfg: ExtractionConfig, state: dict, odometry: bo
     if not (isinstance(dataset, ScanFileDataset) and dataset.random_access):
         window: deque = deque()
         with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_pool_init,
-                                 initargs=(job,)) as pool:
+                                 initargs=(job, os.getpid())) as pool:
             for scan in dataset:
                 window.append(pool.submit(_pool_filter, scan, state["threshold"]))
                 if len(window) >= 2 * workers:
@@ -1087,7 +1090,7 @@ def _filtered(dataset: Dataset, cfg: ExtractionConfig, state: dict, odometry: bo
                 break
         futures: deque = deque()
         with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_pool_init,
-                                 initargs=(job,)) as pool:
+                                 initargs=(job, os.getpid())) as pool:
             while k < n or futures:
                 while k < n and len(futures) < 2 * workers:
                     futures.append(pool.submit(_pool_read, range(k, min(k + _BATCH, n)), state["threshold"]))

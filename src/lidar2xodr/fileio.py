@@ -1,15 +1,27 @@
 """Atomic output: everything is written to a temporary sibling and renamed into place.
 
-A crash or a rejected result never leaves a half-written map, cloud or report behind.
+A crash or a rejected result never leaves a half-written map, cloud or report behind:
+- `atomic_path` / `atomic_dir` write a temporary sibling and rename it onto the target on success.
+- Inside `staged_outputs()` those renames wait until the whole command succeeded, so a command
+  that fails writes none of its outputs (`staged(target)` finds a staged file's temporary copy).
+- A folder we write (a report, a simulated drive) carries a marker file listing the files we
+  wrote. An existing folder is replaced only when it is empty or carries our marker, and then
+  only our files are replaced or removed: a file of the user's in it is never touched.
+- Temporary names carry our process id (`.lidar2xodr-PID-...`), so `clean_stale` removes the
+  leftovers of a killed run (its pid is dead) when the next run starts.
 """
 
 from __future__ import annotations
 
 import contextlib
+import contextvars
+import errno
 import os
+import re
 import shutil
 import tempfile
 from collections.abc import Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from lidar2xodr.errors import OutputError
@@ -22,53 +34,323 @@ def _umask() -> int:
 
 
 _UMASK = _umask()
+_STALE = re.compile(r"^\.?lidar2xodr-(?:[a-z]+-)?(\d+)-")
+
+
+def marker_name(kind: str) -> str:
+    """The file that marks a folder as one of ours (`.lidar2xodr-report`, `.lidar2xodr-drive`)."""
+    return f".lidar2xodr-{kind}"
+
+
+def temp_prefix(kind: str = "", hidden: bool = True) -> str:
+    """Prefix of our temporary files and folders; the pid lets a later run recognise a dead run's leftovers."""
+    return f"{'.' if hidden else ''}lidar2xodr-{kind + '-' if kind else ''}{os.getpid()}-"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def clean_stale(folder: str | Path) -> list[Path]:
+    """Remove our temporary files and folders in `folder` whose owning process is dead; return them."""
+    removed: list[Path] = []
+    try:
+        entries = list(Path(folder).iterdir())
+    except OSError:
+        return removed
+    for entry in entries:
+        m = _STALE.match(entry.name)
+        if m is None or int(m.group(1)) == os.getpid() or _pid_alive(int(m.group(1))):
+            continue
+        try:
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry)
+            else:
+                entry.unlink()
+            removed.append(entry)
+        except OSError:
+            continue
+    return removed
+
+
+def _problem(exc: OSError) -> str:
+    if exc.errno == errno.ENOSPC:
+        return "no space left on the device"
+    if exc.errno == errno.EROFS:
+        return "the file system is read-only"
+    if exc.errno in (errno.EACCES, errno.EPERM):
+        return "permission denied (read-only or immutable target?)"
+    return exc.strerror or str(exc)
+
+
+def check_output_file(target: str | Path) -> Path:
+    """Refuse an output file path that is a folder; return it as a Path."""
+    target = Path(target)
+    if target.is_dir():
+        raise OutputError(target, "is a folder, not a file: give the file name to write")
+    if target.parent.exists() and not target.parent.is_dir():
+        raise OutputError(target, f"{target.parent} is a file, not a folder")
+    return target
+
+
+def _is_ours(target: Path, kind: str, entries: list[str]) -> bool:
+    """A folder with our marker, or a report written before reports had one (its index.html says so)."""
+    if marker_name(kind) in entries:
+        return True
+    if kind == "report" and "index.html" in entries:
+        with contextlib.suppress(OSError):
+            return "<title>lidar2xodr report</title>" in (target / "index.html").read_text(errors="replace")[:2000]
+    return False
+
+
+def check_output_dir(target: str | Path, kind: str) -> Path:
+    """Refuse an output folder that is a file, or a non-empty folder that is not one of our `kind` folders."""
+    target = Path(target)
+    if target.exists() and not target.is_dir():
+        raise OutputError(target, f"is a file, not a folder: give a new or empty folder for the {kind}")
+    if target.is_dir():
+        try:
+            entries = [p.name for p in target.iterdir()]
+        except OSError as exc:
+            raise OutputError(target, f"cannot read the folder: {_problem(exc)}") from None
+        if entries and not _is_ours(target, kind, entries):
+            raise OutputError(target, f"is a folder with files that are not a lidar2xodr {kind} (it has no "
+                              f"{kind} marker): give a new or empty folder; nothing was changed")
+    return target
+
+
+@dataclass
+class _Staged:
+    """Renames deferred until the command succeeded: (temporary path, target, folder kind or None)."""
+
+    moves: list[tuple[Path, Path, str | None]] = field(default_factory=list)
+    created: list[Path] = field(default_factory=list)
+
+
+def _make_parents(folder: Path) -> list[Path]:
+    """Create `folder` and its missing ancestors; return those created, deepest first."""
+    missing = []
+    for p in [folder, *folder.parents]:
+        if p.exists():
+            break
+        missing.append(p)
+    folder.mkdir(parents=True, exist_ok=True)
+    return missing
+
+
+def _remove_empty(folders: list[Path]) -> None:
+    """Remove folders we created for outputs that were never written (deepest first, only if empty)."""
+    for p in folders:
+        with contextlib.suppress(OSError):
+            p.rmdir()
+
+
+_CURRENT: contextvars.ContextVar[_Staged | None] = contextvars.ContextVar("lidar2xodr_staged", default=None)
+
+
+@contextlib.contextmanager
+def staged_outputs() -> Iterator[None]:
+    """Keep every atomic output written inside in its temporary copy; move them all into place at the end.
+
+    On an exception every temporary copy is removed and no target is touched. Nested uses join the
+    outermost one.
+    """
+    if _CURRENT.get() is not None:
+        yield
+        return
+    staged_set = _Staged()
+    token = _CURRENT.set(staged_set)
+    try:
+        yield
+    except BaseException:
+        for tmp, _, _ in staged_set.moves:
+            _remove(tmp)
+        _remove_empty(sorted(set(staged_set.created), key=lambda p: len(p.parts), reverse=True))
+        raise
+    finally:
+        _CURRENT.reset(token)
+    try:
+        for tmp, target, kind in staged_set.moves:
+            if kind is None:
+                _commit_file(tmp, target)
+            else:
+                _commit_dir(tmp, target, kind)
+    finally:
+        for tmp, _, _ in staged_set.moves:
+            _remove(tmp)
+
+
+def staged(target: str | Path) -> Path:
+    """The path where `target`'s content is now: its temporary copy while staged, else `target` itself."""
+    target = Path(target)
+    staged_set = _CURRENT.get()
+    if staged_set is not None:
+        for tmp, dest, _ in reversed(staged_set.moves):
+            if dest == target:
+                return tmp
+    return target
+
+
+def _remove(path: Path) -> None:
+    """Remove a temporary file of ours (with its private folder) or a temporary folder of ours."""
+    if path.parent.name.startswith(temp_prefix()) and not path.is_dir():
+        path = path.parent
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    elif path.exists() or path.is_symlink():
+        with contextlib.suppress(OSError):
+            path.unlink()
+
+
+def _commit_file(tmp: Path, target: Path) -> None:
+    try:
+        check_output_file(target)
+        os.chmod(tmp, 0o666 & ~_UMASK)
+        os.replace(tmp, target)
+        if tmp.parent.name.startswith(temp_prefix()):
+            tmp.parent.rmdir()
+    except OSError as exc:
+        raise OutputError(target, f"cannot write: {_problem(exc)}") from None
 
 
 @contextlib.contextmanager
 def atomic_path(target: str | Path, suffix: str | None = None) -> Iterator[Path]:
-    """Yield a temporary file path next to `target`; rename it onto `target` only on success."""
-    target = Path(target)
+    """Yield a temporary file path next to `target`; rename it onto `target` only on success.
+
+    The temporary file has `target`'s name (in a hidden folder of ours beside it), so whatever
+    reads or names it (a checker, a report title) sees the user's file name. `suffix` is added
+    when the name does not end with it.
+    """
+    target = check_output_file(target)
+    name = target.name if not suffix or target.name.endswith(suffix) else target.name + suffix
+    staged_set = _CURRENT.get()
+    created: list[Path] = []
     try:
-        target.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(
-            prefix=f".{target.name}.", suffix=suffix or target.suffix or ".tmp", dir=target.parent
-        )
-        os.close(fd)
+        created = _make_parents(target.parent)
+        if staged_set is not None:
+            staged_set.created.extend(created)
+        tmp_dir = Path(tempfile.mkdtemp(prefix=f"{temp_prefix()}{target.name}.", dir=target.parent))
     except OSError as exc:
-        raise OutputError(target, f"cannot write: {exc.strerror or exc}") from None
-    tmp_path = Path(tmp)
+        _remove_empty(created)
+        raise OutputError(target, f"cannot write: {_problem(exc)}") from None
+    tmp_path = tmp_dir / name
+    keep = False
     try:
-        yield tmp_path
-        os.chmod(tmp_path, 0o666 & ~_UMASK)
-        os.replace(tmp_path, target)
+        try:
+            yield tmp_path
+        except OSError as exc:
+            raise OutputError(target, f"cannot write: {_problem(exc)}") from None
+        if not tmp_path.is_file():
+            raise OutputError(target, "nothing was written")
+        if staged_set is not None:
+            staged_set.moves.append((tmp_path, target, None))
+            keep = True
+        else:
+            _commit_file(tmp_path, target)
     finally:
-        if tmp_path.exists():
-            tmp_path.unlink()
+        if not keep:
+            _remove(tmp_dir)
+            if not target.exists():
+                _remove_empty(created)
 
 
-@contextlib.contextmanager
-def atomic_dir(target: str | Path) -> Iterator[Path]:
-    """Yield a temporary directory next to `target`; it replaces `target` only on success."""
-    target = Path(target)
+def _files(folder: Path) -> set[str]:
+    return {p.relative_to(folder).as_posix() for p in folder.rglob("*") if not p.is_dir() or p.is_symlink()}
+
+
+def _ours(target: Path, kind: str) -> set[str]:
+    marker = target / marker_name(kind)
     try:
-        target.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
-    except OSError as exc:
-        raise OutputError(target, f"cannot write: {exc.strerror or exc}") from None
+        lines = marker.read_text(encoding="utf-8").splitlines()
+    except OSError:
+        return set()
+    return {ln for ln in lines if ln and not ln.startswith("#")} | {marker_name(kind)}
+
+
+def _commit_dir(tmp: Path, target: Path, kind: str) -> None:
+    """Move the finished folder `tmp` onto `target`, replacing only files we wrote there before."""
     try:
-        yield tmp
+        check_output_dir(target, kind)
+        new = _files(tmp)
+        (tmp / marker_name(kind)).write_text(
+            f"# written by lidar2xodr ({kind}); a re-run replaces these files and no others\n"
+            + "".join(f"{name}\n" for name in sorted(new)), encoding="utf-8")
         os.chmod(tmp, 0o777 & ~_UMASK)
-        if target.exists():
-            backup = target.with_name(f".{target.name}.old")
-            shutil.rmtree(backup, ignore_errors=True)
+        if not target.exists():
+            os.replace(tmp, target)
+            return
+        ours, present = _ours(target, kind), _files(target)
+        if present <= ours:
+            backup = target.with_name(f"{temp_prefix()}{target.name}.old")
             os.replace(target, backup)
             os.replace(tmp, target)
             shutil.rmtree(backup, ignore_errors=True)
+            return
+        for name in sorted(new | {marker_name(kind)}):
+            dest = target / name
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(tmp / name, dest)
+        for name in sorted(ours - new - {marker_name(kind)}):
+            with contextlib.suppress(OSError):
+                (target / name).unlink()
+    except OSError as exc:
+        raise OutputError(target, f"cannot write: {_problem(exc)}") from None
+
+
+@contextlib.contextmanager
+def atomic_dir(target: str | Path, kind: str = "report") -> Iterator[Path]:
+    """Yield a temporary folder next to `target`; its files replace `target`'s only on success.
+
+    `target` must be new, empty or a folder of ours of this `kind` (see the module docstring).
+    """
+    target = check_output_dir(target, kind)
+    staged_set = _CURRENT.get()
+    created: list[Path] = []
+    try:
+        created = _make_parents(target.parent)
+        if staged_set is not None:
+            staged_set.created.extend(created)
+        tmp = Path(tempfile.mkdtemp(prefix=f"{temp_prefix()}{target.name}.", dir=target.parent))
+    except OSError as exc:
+        _remove_empty(created)
+        raise OutputError(target, f"cannot write: {_problem(exc)}") from None
+    keep = False
+    try:
+        try:
+            yield tmp
+        except OSError as exc:
+            raise OutputError(target, f"cannot write: {_problem(exc)}") from None
+        if staged_set is not None:
+            staged_set.moves.append((tmp, target, kind))
+            keep = True
         else:
-            os.replace(tmp, target)
+            _commit_dir(tmp, target, kind)
     finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
+        if not keep:
+            _remove(tmp)
+            if not target.exists():
+                _remove_empty(created)
+
+
+@contextlib.contextmanager
+def temp_dir(folder: str | Path | None = None, kind: str = "") -> Iterator[Path]:
+    """A scratch folder of ours (in `folder`, default the system's), removed at the end; stale ones are cleaned."""
+    base = Path(folder) if folder is not None else Path(tempfile.gettempdir())
+    clean_stale(base)
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix=temp_prefix(kind, hidden=folder is not None), dir=base))
+    except OSError as exc:
+        raise OutputError(base, f"cannot create a temporary folder: {_problem(exc)}") from None
+    try:
+        yield tmp
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def write_text(target: str | Path, text: str) -> None:

@@ -2,13 +2,13 @@
 
 `BuildPipeline.run()` streams the drive through each stage with a progress bar, times every
 stage, checks the written map and only then moves it into place: a map that fails `check` is
-written only with `allow_invalid` (nothing half-written either way).
+written only with `allow_invalid` (nothing half-written either way). Every output of a build
+(map, scenario, intermediates, report) is staged (`fileio.staged_outputs`) and moved into place
+only when all of them succeeded: a build that fails writes none of them.
 """
 
 from __future__ import annotations
 
-import shutil
-import tempfile
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -21,7 +21,15 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from lidar2xodr.config import Config
 from lidar2xodr.data import GroundPlanes, LaneModel, MarkingCloud, RoadNetwork
-from lidar2xodr.errors import InputError, OutputError
+from lidar2xodr.errors import InputError
+from lidar2xodr.fileio import (
+    atomic_dir,
+    check_output_dir,
+    check_output_file,
+    clean_stale,
+    staged,
+    staged_outputs,
+)
 
 
 @dataclass
@@ -38,14 +46,33 @@ class BuildResult:
 
 
 def progress_bar(console: Console) -> Progress:
+    """A bar per stage on a terminal; gone when done, and none at all in a pipe or log file."""
     return Progress(
         TextColumn("[bold blue]{task.description:<12}"),
         BarColumn(),
         MofNCompleteColumn(),
         TimeElapsedColumn(),
         console=console,
-        transient=False,
+        transient=True,
+        disable=not console.is_terminal,
     )
+
+
+def prepare_outputs(files: list[Path | None], folders: list[tuple[Path | None, str]]) -> None:
+    """Refuse unusable outputs before any work; remove a killed run's leftovers beside them."""
+    import tempfile
+
+    parents = set()
+    for path in files:
+        if path is not None:
+            check_output_file(path)
+            parents.add(Path(path).parent)
+    for folder, kind in folders:
+        if folder is not None:
+            check_output_dir(folder, kind)
+            parents.add(Path(folder).parent)
+    for parent in parents | {Path(tempfile.gettempdir())}:
+        clean_stale(parent)
 
 
 class BuildPipeline:
@@ -63,6 +90,9 @@ class BuildPipeline:
         allow_invalid: bool = False,
         reference: Path | None = None,
         console: Console | None = None,
+        topic: str | None = None,
+        pose_topic: str | None = None,
+        intensity_scale: float | None = None,
     ) -> None:
         self.drive = Path(drive)
         self.out = Path(out)
@@ -74,21 +104,28 @@ class BuildPipeline:
         self.allow_invalid = allow_invalid
         self.reference = reference
         self.console = console or Console(stderr=True)
+        self.reader_options = dict(topic=topic, pose_topic=pose_topic, intensity_scale=intensity_scale)
         self.timings: dict[str, float] = {}
         self._tracks: Any = None  # the drive's object tracks, loaded once for lane directions and the scenario
 
     @contextmanager
-    def _stage(self, name: str) -> Iterator[None]:
+    def _stage(self, name: str, spinner: bool = True) -> Iterator[None]:
+        """Time a stage; on a terminal, show it as a (transient) spinner while it runs."""
         t0 = time.perf_counter()
-        yield
+        if spinner:
+            with progress_bar(self.console) as bar:
+                bar.add_task(name, total=None)
+                yield
+        else:
+            yield
         self.timings[name] = time.perf_counter() - t0
 
     def extract(self) -> MarkingCloud:
         from lidar2xodr.datasets import open_dataset
         from lidar2xodr.extraction import extract_markings
 
-        dataset = open_dataset(self.drive, self.data_format)
-        with self._stage("extract"), progress_bar(self.console) as bar:
+        dataset = open_dataset(self.drive, self.data_format, **self.reader_options)
+        with self._stage("extract", spinner=False), progress_bar(self.console) as bar:
             task = bar.add_task("extract", total=len(dataset))
             cloud = extract_markings(dataset, self.config.extraction, progress=lambda n=1: bar.advance(task, n))
         if len(cloud.xyz) == 0:
@@ -125,10 +162,17 @@ class BuildPipeline:
         return apply_traffic_directions(model, self._tracks.tracks, cloud.trajectory, self.config.lanes)
 
     def run(self) -> BuildResult:
+        """The whole build; its outputs appear together at the end, or none of them."""
+        prepare_outputs([self.out, self.scenario], [(self.report_dir, "report"), (self.keep, "intermediate")])
+        with staged_outputs():
+            return self._run()
+
+    def _run(self) -> BuildResult:
         cloud = self.extract()
         model, network = self.lanes(cloud)
         summary, verdict = write_checked_map(
-            network, cloud.planes, self.config, self.out, self.allow_invalid, where=self.drive, timings=self.timings
+            network, cloud.planes, self.config, self.out, self.allow_invalid, where=self.drive, timings=self.timings,
+            stage=self._stage,
         )
         if self.keep:
             self._keep(cloud, network)
@@ -162,13 +206,13 @@ class BuildPipeline:
             from lidar2xodr.evaluation import compare_maps
 
             with self._stage("compare"):
-                metrics = compare_maps(self.out, self.reference, self.config.evaluation)
+                metrics = compare_maps(staged(self.out), self.reference, self.config.evaluation)
             result.summary["metrics"] = metrics
         if self.report_dir:
             from lidar2xodr.report import write_report
 
             with self._stage("report"):
-                result.report_path = write_report(self.report_dir, cloud=cloud, model=model, map_path=self.out,
+                result.report_path = write_report(self.report_dir, cloud=cloud, model=model, map_path=staged(self.out),
                                                   check=verdict, timings=self.timings, summary=result.summary,
                                                   scenario=scenario_info, metrics=metrics)
         return result
@@ -188,8 +232,9 @@ class BuildPipeline:
         from lidar2xodr.markings_io import save_markings
 
         assert self.keep is not None
-        save_markings(cloud, self.keep / "markings.ply")
-        save_network(network, self.keep / "lanes.json")
+        with atomic_dir(self.keep, kind="intermediate") as tmp:
+            save_markings(cloud, tmp / "markings.ply")
+            save_network(network, tmp / "lanes.json")
 
 
 def write_checked_map(
@@ -200,31 +245,30 @@ def write_checked_map(
     allow_invalid: bool = False,
     where: str | Path = "lane model",
     timings: dict[str, float] | None = None,
+    stage: Any = None,
 ) -> tuple[Any, dict[str, Any]]:
     """Export to a temporary file, run `check` on it, and move it into place only if it passes.
 
     A map that fails the checks is written only with `allow_invalid`; otherwise nothing is
-    written and the error names `where` the model came from. Returns (export summary, verdict).
+    written and the error names `where` the model came from. Inside a build the map stays staged
+    until the build's other outputs are done. Returns (export summary, verdict).
     """
     from lidar2xodr import export_opendrive as exporter
     from lidar2xodr.check import check_file
 
     timings = timings if timings is not None else {}
-    out = Path(out)
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise OutputError(out, f"cannot create the output folder: {exc.strerror or exc}") from None
-    with tempfile.TemporaryDirectory(prefix=".lidar2xodr-", dir=out.parent) as tmp:
-        tmp_map = Path(tmp) / out.name
+    out = check_output_file(out)
+    with staged_outputs():
         t0 = time.perf_counter()
         if isinstance(model, RoadNetwork) and (len(model.roads) > 1 or model.links):
-            summary = exporter.export_network(model, planes, config.export, tmp_map)
+            summary = exporter.export_network(model, planes, config.export, out)
         else:
             single = model.roads[0] if isinstance(model, RoadNetwork) else model
-            summary = exporter.export_opendrive(single, planes, config.export, tmp_map)
+            summary = exporter.export_opendrive(single, planes, config.export, out)
         t1 = time.perf_counter()
-        verdict = check_file(tmp_map)
+        with stage("check") if stage is not None else _no_stage():
+            verdict = check_file(staged(out))
+        verdict["file"] = str(out)
         timings.update(export=t1 - t0, check=time.perf_counter() - t1)
         if not verdict["ok"] and not allow_invalid:
             raise InputError(
@@ -232,8 +276,12 @@ def write_checked_map(
                 f"the generated map fails the checks ({_verdict_line(verdict)}); "
                 "nothing written (use --allow-invalid to write it anyway)",
             )
-        shutil.move(str(tmp_map), out)
     return summary, verdict
+
+
+@contextmanager
+def _no_stage() -> Iterator[None]:
+    yield
 
 
 def _verdict_line(verdict: dict[str, Any]) -> str:
@@ -251,9 +299,10 @@ def _verdict_line(verdict: dict[str, Any]) -> str:
 
 def print_summary(result: BuildResult, console: Console) -> None:
     """The end-of-build summary: length, lanes, time per stage, checks."""
+    from rich.markup import escape
     from rich.table import Table
 
-    table = Table(title=f"built {result.map_path}", show_header=False)
+    table = Table(title=escape(f"built {result.map_path}"), show_header=False)
     s = result.summary
     table.add_row("length", f"{s.get('length_m', 0.0):.0f} m")
     table.add_row("lanes per section", ", ".join(str(n) for n in s.get("sections", [])))
@@ -271,21 +320,25 @@ def print_summary(result: BuildResult, console: Console) -> None:
         table.add_row("lane width bias / sigma",
                       "no matched lanes" if lw.get("bias_m") is None else f"{lw['bias_m']:+.3f} / {lw['std_m']:.3f} m")
     for w in result.warnings:
-        table.add_row("warning", w)
+        table.add_row("warning", escape(w))
     if result.scenario_path:
-        table.add_row("scenario", str(result.scenario_path))
+        table.add_row("scenario", escape(str(result.scenario_path)))
     if result.report_path:
-        table.add_row("report", str(result.report_path))
+        table.add_row("report", escape(str(result.report_path)))
     console.print(table)
 
 
 def run_demo(out_dir: Path, length_m: float, seed: int, console: Console, out: Console) -> BuildResult:
     """`make demo`: simulate a drive on the project's own road, build, check, compare with the truth."""
     from lidar2xodr.demo_road import write_demo_road
+    from lidar2xodr.fileio import marker_name
     from lidar2xodr.simulation import SimOptions, simulate
 
-    out_dir = Path(out_dir)
+    out_dir = check_output_dir(out_dir, "demo")
     out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / marker_name("demo")).write_text(
+        "# written by lidar2xodr (demo); a re-run replaces these and no others\n"
+        "demo_road.xodr\ndrive\nmap.xodr\nmap.xosc\nreport\n", encoding="utf-8")
     truth = write_demo_road(out_dir / "demo_road.xodr")
     drive = out_dir / "drive"
     console.print(f"[bold]1/2[/] simulating a {length_m:.0f} m drive on {truth}")

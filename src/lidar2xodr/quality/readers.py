@@ -24,7 +24,6 @@ import re
 import shutil
 import subprocess
 import sys
-import tempfile
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,6 +31,9 @@ from typing import Any
 
 import numpy as np
 from lxml import etree
+
+from lidar2xodr.fileio import temp_dir
+from lidar2xodr.lifetime import child_preexec
 
 READER_TIMEOUT_S = 600
 """A reader that has not finished a map within this time is reported as failed (SUMO needs ~10 s for Town04)."""
@@ -109,7 +111,7 @@ def run_netconvert(path: Path) -> dict[str, Any]:
         out["note"] = nc.note.rstrip("; ")
     try:
         head = subprocess.run([str(nc.exe), "--version"], capture_output=True, text=True, env=env, timeout=60,
-                              check=False)
+                              check=False, preexec_fn=child_preexec())
         number = re.search(r"\d+\.\d+(\.\d+)?", (head.stdout.strip().splitlines() or [""])[0])
         out["version"] = number.group(0) if number else "?"
     except (OSError, subprocess.TimeoutExpired):
@@ -118,12 +120,12 @@ def run_netconvert(path: Path) -> dict[str, Any]:
         where = nc.sumo_home or "(no SUMO_HOME)"
         return {**out, "ok": False, "returncode": None, "warnings": [],
                 "errors": [f"SUMO's data is missing: no {_TYPES_FILE} in {where}"]}
-    with tempfile.TemporaryDirectory(prefix="lidar2xodr-sumo-") as tmp:
+    with temp_dir(kind="sumo") as tmp:
         net = Path(tmp) / "map.net.xml"
         cmd = [str(nc.exe), "--opendrive-files", str(path.resolve()), "--aggregate-warnings", "-1", "-o", str(net)]
         try:
             proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=tmp, timeout=READER_TIMEOUT_S,
-                                  check=False)
+                                  check=False, preexec_fn=child_preexec())
         except subprocess.TimeoutExpired:
             return {**out, "ok": False, "returncode": None, "warnings": [],
                     "errors": [f"netconvert did not finish within {READER_TIMEOUT_S} s"]}
@@ -221,7 +223,8 @@ def run_in_subprocess(reader: str, path: Path, timeout_s: float = READER_TIMEOUT
     except importlib.metadata.PackageNotFoundError:
         version = "?"
     try:
-        proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout_s, check=False)
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout_s, check=False,
+                              preexec_fn=child_preexec())
     except subprocess.TimeoutExpired:
         return {"available": True, "reader": names[reader], "version": version, "ok": False, "warnings": [],
                 "errors": [f"{names[reader]} did not finish within {timeout_s:.0f} s"]}

@@ -82,7 +82,7 @@ def run(map_path: Path, out_dir: Path, opts: SimOptions, console: Console | None
     regions = [Region.at(ego, close_k, 1, f"close-up at t = {close_k / ego.hz:.1f} s: all points below sensor "
                          "height, reflectivity")]
     tiles = tile_regions(ego) if opts.preview else []
-    with atomic_dir(out_dir) as tmp:
+    with atomic_dir(out_dir, kind="drive") as tmp:
         (tmp / "scans").mkdir()
         (tmp / "truth").mkdir()
         col = PreviewCollector(preset.mount_xyz[2], preset.intensity_scale, n_scans * preset.rays_per_scan,

@@ -1,0 +1,518 @@
+"""A hostile user's battery over every command (issue #17): configs, outputs, environment, signals.
+
+Every case asserts the README's promise: the exit code, one message line on stderr that names the
+user's file, no traceback, no output left behind and nothing of the user's changed (the test's
+folder is hashed before and after). Commands run in-process (typer's CliRunner) except where
+signals and processes matter. Readers' own hostile inputs live in the readers' tests.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import hashlib
+import os
+import pathlib
+import shutil
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from lidar2xodr.cli import app
+from lidar2xodr.demo_road import write_demo_road
+
+runner = CliRunner(mix_stderr=False)
+SRC = Path(__file__).resolve().parents[1] / "src"
+
+
+# --------------------------------------------------------------------------------------------
+# harness
+
+
+def snapshot(root: Path) -> dict[str, str]:
+    """Every entry under `root` with the hash of its bytes (folders as '<dir>')."""
+    snap = {}
+    for p in sorted(root.rglob("*")):
+        rel = p.relative_to(root).as_posix()
+        snap[rel] = "<dir>" if p.is_dir() else hashlib.sha256(p.read_bytes()).hexdigest()
+    return snap
+
+
+def hostile(args: list[object], root: Path, code: int = 2, names: object = None) -> str:
+    """Run the CLI in-process; assert the promise of a failed command; return its one message line."""
+    before = snapshot(root)
+    res = runner.invoke(app, [str(a) for a in args])
+    output = res.stdout + res.stderr
+    assert res.exit_code == code, output
+    assert "Traceback" not in output
+    assert res.exception is None or isinstance(res.exception, SystemExit), repr(res.exception)
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1, lines
+    if names is not None:
+        assert str(names) in lines[0], lines[0]
+    assert ".lidar2xodr-" not in lines[0] and "lidar2xodr-qc-" not in lines[0], lines[0]
+    assert snapshot(root) == before
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def assets(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """A valid map, a broken map, a tiny simulated drive (200 m) and its map; never written by the tests."""
+    from lidar2xodr.simulation import SimOptions, simulate
+
+    root = tmp_path_factory.mktemp("assets")
+    truth = write_demo_road(root / "truth.xodr")
+    broken = root / "broken.xodr"
+    broken.write_text("<OpenDRIVE><road")
+    drive = root / "drive"
+    simulate(truth, drive, SimOptions(length_m=200.0, seed=1, traffic="mid"))
+    return {"map": truth, "broken": broken, "drive": drive, "root": root}
+
+
+# --------------------------------------------------------------------------------------------
+# configurations: refused at load, one line naming the file and the field (item 9)
+
+BAD_CONFIGS = {
+    "negative_radius": ("markings:\n  search_radius_m: -1\n", "markings.search_radius_m"),
+    "nan": ("markings:\n  search_radius_m: .nan\n", "markings.search_radius_m"),
+    "inf": ("extraction:\n  outlier_radius_m: .inf\n", "extraction.outlier_radius_m"),
+    "negative_workers": ("extraction:\n  workers: -3\n", "extraction.workers"),
+    "zero_workers": ("extraction:\n  workers: 0\n", "extraction.workers"),
+    "word_workers": ("extraction:\n  workers: many\n", "extraction.workers"),
+    "fraction_above_1": ("extraction:\n  reflectivity_threshold: 1.5\n", "extraction.reflectivity_threshold"),
+    "negative_share": ("lanes:\n  traffic_share: -0.1\n", "lanes.traffic_share"),
+    "negative_seed": ("extraction:\n  seed: -1\n", "extraction.seed"),
+    "zero_piece": ("export:\n  piece_length_m: 0\n", "export.piece_length_m"),
+    "minor_9": ("export:\n  opendrive_minor: 9\n", "export.opendrive_minor"),
+    "negative_ego_width": ("scenario:\n  ego_dims_m: [4.9, -1, 1.5]\n", "scenario.ego_dims_m"),
+    "widths_swapped": ("lanes:\n  min_lane_width_m: 6\n", "lanes"),
+    "odometry_word": ("extraction:\n  odometry: gps\n", "extraction.odometry"),
+    "unknown_field": ("markings:\n  no_such_field: 1\n", "markings.no_such_field"),
+    "unknown_section": ("paint:\n  colour: white\n", "paint"),
+    "string_for_float": ("markings:\n  gamma: half\n", "markings.gamma"),
+    "angle_over_180": ("markings:\n  max_turn_deg: 270\n", "markings.max_turn_deg"),
+    "top_level_list": ("- extraction\n- markings\n", "mapping"),
+    "yaml_markup": ("extraction:\n  workers: [/data/run1\n", "[/data/run1"),
+    "yaml_multiline": ("extraction:\n\tworkers: 2\n", "cannot read configuration"),
+    "section_not_mapping": ("markings: 3\n", "markings"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_CONFIGS))
+def test_bad_config_is_one_line(case: str, tmp_path: Path) -> None:
+    text, field = BAD_CONFIGS[case]
+    cfg = tmp_path / "my config.yaml"
+    cfg.write_text(text)
+    line = hostile(["config", "--show", "-c", cfg], tmp_path, names=cfg)
+    assert field in line
+
+
+@pytest.mark.parametrize("command", ["build", "extract", "lanes", "export", "scenario", "compare"])
+def test_bad_config_is_refused_by_every_command(command: str, tmp_path: Path, assets: dict[str, Path]) -> None:
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("markings:\n  search_radius_m: .nan\n")
+    out = tmp_path / "out"
+    args = {
+        "build": ["build", assets["drive"], "-o", out / "m.xodr"],
+        "extract": ["extract", assets["drive"], "-o", out / "m.ply"],
+        "lanes": ["lanes", tmp_path / "m.ply", "-o", out / "lanes.json"],
+        "export": ["export", tmp_path / "lanes.json", "-o", out / "m.xodr"],
+        "scenario": ["scenario", assets["drive"], "--map", assets["map"], "-o", out / "s.xosc"],
+        "compare": ["compare", assets["map"], assets["map"]],
+    }[command]
+    line = hostile([*args, "-c", cfg], tmp_path, names=cfg)
+    assert "markings.search_radius_m" in line
+
+
+@pytest.mark.parametrize("name", ["missing.yaml", "folder", "binary.yaml"])
+def test_unreadable_config(name: str, tmp_path: Path) -> None:
+    (tmp_path / "folder").mkdir()
+    (tmp_path / "binary.yaml").write_bytes(bytes(range(256)) * 4)
+    hostile(["config", "--show", "-c", tmp_path / name], tmp_path, names=tmp_path / name)
+
+
+# --------------------------------------------------------------------------------------------
+# outputs in the wrong place: a folder as a file, a file as a folder (items 1, 3)
+
+
+def _output_cases(a: dict[str, Path], t: Path) -> dict[str, tuple[list[object], Path]]:
+    folder, userdir, userfile = t / "taken.xodr", t / "mine", t / "notes.txt"
+    return {
+        "build -o folder": (["build", a["drive"], "-o", folder], folder),
+        "extract -o folder": (["extract", a["drive"], "-o", folder], folder),
+        "lanes -o folder": (["lanes", t / "m.ply", "-o", folder], folder),
+        "export -o folder": (["export", t / "lanes.json", "-o", folder], folder),
+        "scenario -o folder": (["scenario", a["drive"], "--map", a["map"], "-o", folder], folder),
+        "compare --json folder": (["compare", a["map"], a["map"], "--json", folder], folder),
+        "check --json folder": (["check", a["map"], "--json", folder], folder),
+        "build --scenario folder": (["build", a["drive"], "-o", t / "m.xodr", "--scenario", folder], folder),
+        "build -o below a file": (["build", a["drive"], "-o", userfile / "m.xodr"], userfile / "m.xodr"),
+        "build --report user folder": (["build", a["drive"], "-o", t / "m.xodr", "--report", userdir], userdir),
+        "build --report file": (["build", a["drive"], "-o", t / "m.xodr", "--report", userfile], userfile),
+        "build --keep-intermediate file": (["build", a["drive"], "-o", t / "m.xodr", "--keep-intermediate",
+                                            userfile], userfile),
+        "build --keep-intermediate user folder": (["build", a["drive"], "-o", t / "m.xodr",
+                                                   "--keep-intermediate", userdir], userdir),
+        "lanes --report user folder": (["lanes", t / "m.ply", "-o", t / "l.json", "--report", userdir], userdir),
+        "simulate into user folder": (["simulate", a["map"], userdir], userdir),
+        "simulate onto a file": (["simulate", a["map"], userfile], userfile),
+        "demo into user folder": (["demo", "-o", userdir], userdir),
+    }
+
+
+OUTPUT_CASES = list(_output_cases({"drive": Path(), "map": Path()}, Path()))
+
+
+@pytest.mark.parametrize("case", OUTPUT_CASES)
+def test_output_in_the_wrong_place(case: str, tmp_path: Path, assets: dict[str, Path]) -> None:
+    (tmp_path / "taken.xodr").mkdir()
+    (tmp_path / "taken.xodr" / "inside.txt").write_text("the user's")
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "thesis.tex").write_text("the user's")
+    (tmp_path / "notes.txt").write_text("the user's")
+    args, named = _output_cases(assets, tmp_path)[case]
+    hostile(args, tmp_path, names=named)
+
+
+# --------------------------------------------------------------------------------------------
+# missing and broken inputs of every command; messages keep [brackets] (items 2, 3)
+
+
+def _input_cases(a: dict[str, Path], t: Path) -> dict[str, tuple[list[object], Path]]:
+    nope, junk = t / "nope", t / "run[left] [time].bin"
+    return {
+        "build missing drive": (["build", nope, "-o", t / "o" / "m.xodr"], nope),
+        "extract missing drive": (["extract", nope, "-o", t / "o" / "m.ply"], nope),
+        "lanes missing cloud": (["lanes", nope / "m.ply", "-o", t / "o" / "l.json"], nope / "m.ply"),
+        "lanes junk cloud": (["lanes", junk.with_suffix(".ply"), "-o", t / "o" / "l.json"], junk.with_suffix(".ply")),
+        "export missing model": (["export", nope / "l.json", "-o", t / "o" / "m.xodr"], nope / "l.json"),
+        "export junk model": (["export", junk.with_suffix(".json"), "-o", t / "o" / "m.xodr"],
+                              junk.with_suffix(".json")),
+        "scenario missing map": (["scenario", a["drive"], "--map", nope / "m.xodr", "-o", t / "o" / "s.xosc"],
+                                 nope / "m.xodr"),
+        "scenario broken map": (["scenario", a["drive"], "--map", junk.with_suffix(".xodr"), "-o",
+                                 t / "o" / "s.xosc"], junk.with_suffix(".xodr")),
+        "simulate missing map": (["simulate", nope / "m.xodr", t / "o"], nope / "m.xodr"),
+        "simulate broken map": (["simulate", junk.with_suffix(".xodr"), t / "o"], junk.with_suffix(".xodr")),
+        "simulate negative length": (["simulate", a["map"], t / "o", "--length-m", "-5"], "--length-m"),
+        "simulate nan speed": (["simulate", a["map"], t / "o", "--speed-kmh", "nan"], "--speed-kmh"),
+        "check missing": (["check", nope / "m.xodr"], nope / "m.xodr"),
+        "check unknown suffix": (["check", t / "notes.txt"], t / "notes.txt"),
+        "compare missing": (["compare", nope / "a.xodr", a["map"]], nope / "a.xodr"),
+        "compare broken with brackets": (["compare", a["map"], junk.with_suffix(".xodr")],
+                                         junk.with_suffix(".xodr")),
+        "compare folder as map": (["compare", t, a["map"]], t),
+    }
+
+
+INPUT_CASES = list(_input_cases({"drive": Path(), "map": Path()}, Path()))
+
+
+@pytest.mark.parametrize("case", INPUT_CASES)
+def test_bad_input_of_every_command(case: str, tmp_path: Path, assets: dict[str, Path]) -> None:
+    junk = tmp_path / "run[left] [time].bin"
+    for suffix in (".ply", ".json", ".xodr"):
+        junk.with_suffix(suffix).write_bytes(b"\x00garbage [/data/run1] \xff" * 7)
+    (tmp_path / "empty.xodr").write_bytes(b"")
+    (tmp_path / "notes.txt").write_text("the user's")
+    args, named = _input_cases(assets, tmp_path)[case]
+    hostile(args, tmp_path, names=named)
+
+
+@pytest.mark.parametrize("content", [b"", b"\x00garbage [/data/run1] \xff"])
+def test_check_of_a_broken_file_is_a_failed_verdict(content: bytes, tmp_path: Path) -> None:
+    """`check` judges the file: an empty or broken map is a verdict with errors (exit 1), not a crash."""
+    bad = tmp_path / "run[left].xodr"
+    bad.write_bytes(content)
+    before = snapshot(tmp_path)
+    res = runner.invoke(app, ["check", str(bad)])
+    assert res.exit_code == 1, res.output
+    assert "Traceback" not in res.output and "run[left].xodr" in res.stdout
+    assert snapshot(tmp_path) == before
+
+
+def test_markup_in_a_message_is_printed_verbatim(tmp_path: Path) -> None:
+    """`[/data/run1]` once crashed the printer (rich markup); `[time]` and `run[left]` were eaten."""
+    folder = tmp_path / "[/data/run1]"
+    folder.mkdir(parents=True)
+    cfg = folder / "run[left].yaml"
+    cfg.write_text("markings: [time\n")
+    line = hostile(["config", "--show", "-c", cfg], tmp_path)
+    assert "[/data/run1]/run[left].yaml" in line and "[time" in line
+
+
+# --------------------------------------------------------------------------------------------
+# the user's environment: full disk, read-only, /proc (item 8) -> exit 2 naming the user's path
+
+
+@contextlib.contextmanager
+def tmpfs(where: Path, options: str) -> Iterator[Path]:
+    where.mkdir()
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", options, "none", str(where)],
+                                           capture_output=True).returncode != 0:
+        pytest.skip("needs root and tmpfs mounts (the monkeypatched case below runs everywhere)")
+    try:
+        yield where
+    finally:
+        subprocess.run(["umount", "-l", str(where)], check=False)
+
+
+def test_full_disk_is_exit_2(tmp_path: Path, assets: dict[str, Path]) -> None:
+    with tmpfs(tmp_path / "small", "size=64k") as disk:
+        with contextlib.suppress(OSError), open(disk / "filler", "wb") as fh:
+            while True:
+                fh.write(b"\0" * 4096)
+                fh.flush()
+        target = disk / "metrics.json"
+        line = hostile(["compare", assets["map"], assets["map"], "--json", target], tmp_path, names=target)
+        assert "no space left" in line
+
+
+def test_read_only_target_is_exit_2(tmp_path: Path, assets: dict[str, Path]) -> None:
+    with tmpfs(tmp_path / "ro", "ro,size=64k") as ro:
+        target = ro / "metrics.json"
+        line = hostile(["compare", assets["map"], assets["map"], "--json", target], tmp_path, names=target)
+        assert "read-only" in line
+
+
+def test_output_on_procfs_is_exit_2(tmp_path: Path, assets: dict[str, Path]) -> None:
+    hostile(["compare", assets["map"], assets["map"], "--json", "/proc/metrics.json"], tmp_path,
+            names="/proc/metrics.json")
+
+
+def test_disk_full_while_writing_names_the_users_file(tmp_path: Path, assets: dict[str, Path],
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without root: ENOSPC raised by the write itself; the message names the target, not the temp file."""
+    def full(self: Path, *_args: object, **_kwargs: object) -> int:
+        raise OSError(errno.ENOSPC, "No space left on device", str(self))
+
+    monkeypatch.setattr(pathlib.Path, "write_text", full)
+    target = tmp_path / "metrics.json"
+    line = hostile(["compare", assets["map"], assets["map"], "--json", target], tmp_path, names=target)
+    assert "no space left" in line
+
+
+def test_environment_oserror_from_a_stage_is_exit_2(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An OSError of the environment escaping a stage is the user's (exit 2), not a bug (exit 3)."""
+    import lidar2xodr.evaluation
+
+    def denied(*_args: object, **_kwargs: object) -> None:
+        raise PermissionError(errno.EACCES, "Permission denied", str(tmp_path / "a.xodr"))
+
+    monkeypatch.setattr(lidar2xodr.evaluation, "compare_maps", denied)
+    hostile(["compare", tmp_path / "a.xodr", tmp_path / "b.xodr"], tmp_path, names=tmp_path / "a.xodr")
+
+
+# --------------------------------------------------------------------------------------------
+# a failed build writes none of its outputs; a report only replaces its own files (items 1, 7)
+
+
+def test_build_with_a_bad_object_list_writes_no_map(tmp_path: Path, assets: dict[str, Path]) -> None:
+    drive = tmp_path / "drive"
+    shutil.copytree(assets["drive"], drive)
+    (drive / "objects.csv").write_text("time,id,class,x\n0.0,1,car,[oops]\n")
+    out = tmp_path / "out"
+    hostile(["build", drive, "-o", out / "map.xodr", "--scenario", out / "map.xosc", "--report", out / "rep",
+             "--keep-intermediate", out / "keep"], tmp_path, names=drive / "objects.csv")
+
+
+def test_build_with_an_unwritable_scenario_writes_no_map(tmp_path: Path, assets: dict[str, Path]) -> None:
+    with tmpfs(tmp_path / "ro", "ro,size=64k") as ro:
+        out = tmp_path / "out"
+        hostile(["build", assets["drive"], "-o", out / "map.xodr", "--scenario", ro / "map.xosc"], tmp_path,
+                names=ro / "map.xosc")
+
+
+def test_rebuilding_a_report_keeps_the_users_files(tmp_path: Path, assets: dict[str, Path]) -> None:
+    out, rep = tmp_path / "out", tmp_path / "out" / "report"
+    res = runner.invoke(app, ["build", str(assets["drive"]), "-o", str(out / "map.xodr"), "--report", str(rep)])
+    assert res.exit_code == 0, res.output
+    assert (rep / ".lidar2xodr-report").is_file() and (rep / "index.html").is_file()
+    (rep / "my notes.txt").write_text("the user's")
+    (rep / "index.html").write_text("stale")
+    res = runner.invoke(app, ["build", str(assets["drive"]), "-o", str(out / "map.xodr"), "--report", str(rep)])
+    assert res.exit_code == 0, res.output
+    assert (rep / "my notes.txt").read_text() == "the user's"
+    assert (rep / "index.html").read_text() != "stale"
+    assert sorted(p.name for p in out.iterdir()) == ["map.xodr", "report"]
+
+
+def test_no_progress_bar_in_a_piped_log(tmp_path: Path, assets: dict[str, Path]) -> None:
+    """A build that finds nothing: the one error line, not the progress bar's last state before it."""
+    cfg = tmp_path / "dark.yaml"
+    cfg.write_text("extraction:\n  auto_threshold: false\n  reflectivity_threshold: 1.0\n")
+    line = hostile(["build", assets["drive"], "-o", tmp_path / "out" / "m.xodr", "-c", cfg], tmp_path,
+                   names=assets["drive"])
+    assert "no lane-marking points" in line
+
+
+def test_numpy_warnings_become_one_line(tmp_path: Path, assets: dict[str, Path],
+                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    import lidar2xodr.evaluation
+
+    real = lidar2xodr.evaluation.compare_maps
+
+    def noisy(*args: object, **kwargs: object) -> object:
+        with np.errstate(all="warn"):
+            for _ in range(5):
+                np.divide(np.zeros(3), np.zeros(3))
+                np.log(np.zeros(2))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(lidar2xodr.evaluation, "compare_maps", noisy)
+    res = runner.invoke(app, ["compare", str(assets["map"]), str(assets["map"])])
+    assert res.exit_code == 0
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("warning:") and ".py" not in lines[0], lines
+
+
+# --------------------------------------------------------------------------------------------
+# kills: SIGTERM like Ctrl-C, children die with us, a dead run's leftovers are cleaned (item 6)
+
+
+def _env() -> dict[str, str]:
+    return {**os.environ, "PYTHONPATH": f"{SRC}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+
+
+def _descendants(pid: int) -> set[int]:
+    found, todo = set(), [pid]
+    while todo:
+        p = todo.pop()
+        for task in Path(f"/proc/{p}/task").glob("*"):
+            with contextlib.suppress(OSError):
+                kids = {int(k) for k in (task / "children").read_text().split()}
+                todo.extend(kids - found)
+                found |= kids
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().split(") ")[-1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def _wait(cond: object, timeout: float) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if cond():  # type: ignore[operator]
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def _build_until_checker(assets: dict[str, Path], out: Path) -> tuple[subprocess.Popen[str], set[int]]:
+    """Start `build` in a subprocess and wait until the map checker (a child process) runs."""
+    proc = subprocess.Popen([sys.executable, "-m", "lidar2xodr.cli", "build", str(assets["drive"]), "-o",
+                             str(out / "map.xodr")], env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    found = _wait(lambda: any("qc" in Path(f"/proc/{k}/cmdline").read_text(errors="ignore")
+                              for k in _descendants(proc.pid) if Path(f"/proc/{k}/cmdline").exists()), 60)
+    if not found:
+        proc.kill()
+        pytest.fail(f"the build never started its checker: {proc.communicate()}")
+    return proc, _descendants(proc.pid)
+
+
+@pytest.mark.parametrize(("sig", "code"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_sigterm_and_sigint_leave_nothing(sig: int, code: int, tmp_path: Path, assets: dict[str, Path]) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    proc, children = _build_until_checker(assets, out)
+    proc.send_signal(sig)
+    try:
+        _, err = proc.communicate(timeout=30)
+    finally:
+        proc.kill()
+    assert proc.returncode == code, err
+    assert "Traceback" not in err and len([ln for ln in err.splitlines() if ln.strip()]) == 1, err
+    assert _wait(lambda: not any(_alive(k) for k in children), 10), "a child outlived the build"
+    assert list(out.iterdir()) == []
+
+
+def test_sigkill_takes_the_checker_along_and_the_next_run_cleans_up(tmp_path: Path,
+                                                                     assets: dict[str, Path]) -> None:
+    import tempfile
+
+    out = tmp_path / "out"
+    out.mkdir()
+    proc, children = _build_until_checker(assets, out)
+    pid = proc.pid
+    proc.kill()
+    proc.communicate(timeout=30)
+    assert _wait(lambda: not any(_alive(k) for k in children), 10), "the checker outlived a SIGKILL"
+    leftovers = [p.name for p in out.iterdir()]
+    assert leftovers and all(name.startswith(f".lidar2xodr-{pid}-") for name in leftovers)
+    qc = [p for p in Path(tempfile.gettempdir()).glob(f"lidar2xodr-qc-{pid}-*")]
+    res = runner.invoke(app, ["compare", str(assets["map"]), str(assets["map"]), "--json", str(out / "m.json")])
+    assert res.exit_code == 0, res.output
+    assert [p.name for p in out.iterdir()] == ["m.json"]
+    assert not any(p.exists() for p in qc)
+
+
+@pytest.mark.parametrize("kind", ["pool worker", "subprocess"])
+def test_children_die_with_a_killed_parent(kind: str, tmp_path: Path) -> None:
+    """The extraction's pool initializer and our subprocesses' preexec_fn tie them to the parent."""
+    script = textwrap.dedent(f"""
+        import os, subprocess, sys, time
+        from concurrent.futures import ProcessPoolExecutor
+        import multiprocessing as mp
+        from lidar2xodr import extraction
+        from lidar2xodr.lifetime import child_preexec
+        if {kind!r} == "pool worker":
+            pool = ProcessPoolExecutor(2, mp_context=mp.get_context("fork"), initializer=extraction._pool_init,
+                                       initargs=(None, os.getpid()))
+            print(pool.submit(os.getpid).result(), flush=True)
+        else:
+            child = subprocess.Popen(["sleep", "60"], preexec_fn=child_preexec())
+            print(child.pid, flush=True)
+        time.sleep(60)
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", script], env=_env(), stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        child = int(proc.stdout.readline())
+        assert _alive(child)
+        proc.kill()
+        proc.wait(timeout=10)
+        assert _wait(lambda: not _alive(child), 10), f"the {kind} outlived its parent"
+    finally:
+        proc.kill()
+        with contextlib.suppress(OSError):
+            os.kill(child, signal.SIGKILL)
+
+
+def test_stale_temp_of_a_live_process_is_kept(tmp_path: Path, assets: dict[str, Path]) -> None:
+    """Only a dead run's leftovers go: a concurrent run's temporary files stay."""
+    live = tmp_path / f".lidar2xodr-{os.getppid()}-map.xodr.abc"
+    dead_pid = 2**22 + 12345
+    dead = tmp_path / f".lidar2xodr-{dead_pid}-map.xodr.abc"
+    live.mkdir()
+    dead.mkdir()
+    res = runner.invoke(app, ["compare", str(assets["map"]), str(assets["map"]), "--json", str(tmp_path / "m.json")])
+    assert res.exit_code == 0
+    assert live.exists() and not dead.exists()
+
+
+def test_a_report_from_before_markers_is_updated_file_by_file(tmp_path: Path) -> None:
+    """An unmarked report of ours (older version) is ours: only our files are replaced, none is deleted."""
+    from lidar2xodr.fileio import atomic_dir
+
+    rep = tmp_path / "report"
+    rep.mkdir()
+    (rep / "index.html").write_text("<!doctype html><html><head><title>lidar2xodr report</title></head></html>")
+    (rep / "old_picture.png").write_bytes(b"png")
+    with atomic_dir(rep) as tmp:
+        (tmp / "index.html").write_text("new")
+    assert (rep / "index.html").read_text() == "new" and (rep / "old_picture.png").read_bytes() == b"png"
+    assert (rep / ".lidar2xodr-report").is_file()
