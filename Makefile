@@ -1,31 +1,52 @@
 # Two commands set everything up from nothing: `make demo` and `make test`.
+# The venvs install exactly the lock files (every package and version, --no-deps: the lock is the whole
+# environment, pip check proves it complete); `make lock` regenerates them.
 PY ?= python3
 VENV := .venv
 QC := .venv-qc
+TOOLS := .venv-tools
 BIN := $(VENV)/bin
-export SUMO_HOME ?= /usr/share/sumo
+LOCK := requirements.lock
+QC_LOCK := requirements-qc.lock
+UV_VERSION := 0.13.9
+# The locks are resolved for the machines the project supports: CPython 3.11 on x86_64 Linux
+# (glibc >= 2.31, which open3d 0.19 needs), Debian 12's python3.
+LOCK_TARGET := --python-version 3.11 --python-platform x86_64-manylinux_2_31
+PIP := python -m pip install -q --no-input
+# SUMO comes from the PyPI package eclipse-sumo in the lock: check.py finds its netconvert and data
+# by itself, so SUMO_HOME is left to the user (set it to use another SUMO installation).
 
-.PHONY: all demo test bench sweep lint setup clean
+.PHONY: all demo test bench sweep lint setup lock clean
 all: test
 
 $(VENV)/.stamp-system: scripts/install-system-deps.sh
 	bash scripts/install-system-deps.sh
 	@mkdir -p $(VENV) && touch $@
 
-$(VENV)/.stamp: pyproject.toml $(VENV)/.stamp-system
+$(VENV)/.stamp: $(LOCK) pyproject.toml $(VENV)/.stamp-system
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
-	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[dev]'
+	$(BIN)/$(PIP) --no-deps -r $(LOCK)
+	$(BIN)/$(PIP) --no-deps -e .
+	$(BIN)/python -m pip check
 	touch $@
 
 # The ASAM quality checkers pin numpy<2, so they live in their own venv and run as a process.
-$(QC)/.stamp: requirements-qc.txt
+$(QC)/.stamp: $(QC_LOCK)
 	test -x $(QC)/bin/python || $(PY) -m venv $(QC)
-	$(QC)/bin/python -m pip install -q --upgrade pip
-	$(QC)/bin/python -m pip install -q -r requirements-qc.txt
+	$(QC)/bin/$(PIP) --no-deps -r $(QC_LOCK)
+	$(QC)/bin/python -m pip check
 	touch $@
 
 setup: $(VENV)/.stamp $(QC)/.stamp
+
+# Regenerate both locks from pyproject.toml (main + dev extras) and requirements-qc.txt with uv.
+$(TOOLS)/bin/uv:
+	test -x $(TOOLS)/bin/python || $(PY) -m venv $(TOOLS)
+	$(TOOLS)/bin/$(PIP) uv==$(UV_VERSION)
+
+lock: $(TOOLS)/bin/uv
+	$(TOOLS)/bin/uv pip compile --quiet pyproject.toml --extra dev $(LOCK_TARGET) -o $(LOCK)
+	$(TOOLS)/bin/uv pip compile --quiet requirements-qc.txt $(LOCK_TARGET) -o $(QC_LOCK)
 
 demo: setup
 	$(BIN)/lidar2xodr demo -o demo-out
@@ -50,4 +71,4 @@ lint: $(VENV)/.stamp
 	$(BIN)/ruff check src tests bench
 
 clean:
-	rm -rf $(VENV) $(QC) demo-out .pytest_cache
+	rm -rf $(VENV) $(QC) $(TOOLS) demo-out .pytest_cache

@@ -21,6 +21,7 @@ from lidar2xodr.check import (
 )
 from lidar2xodr.cli import app
 from lidar2xodr.errors import InputError
+from lidar2xodr.quality import readers
 
 HEADER = '<header revMajor="1" revMinor="8" name="t" version="1" date="2024-01-01T00:00:00"/>'
 LANES = """<lanes><laneSection s="0"><center><lane id="0" type="none" level="false"/></center>
@@ -158,8 +159,9 @@ def _steep_map(tmp_path: Path) -> Path:
 def test_reader_warnings_are_reported_verbatim_not_judged(tmp_path: Path) -> None:
     res = check_file(_steep_map(tmp_path))
     assert res["ok"] is True and res["asam"]["errors"] == 0  # the readers never fail the verdict
-    sumo, pyx = res["readers"]["netconvert"], res["readers"]["pyxodr"]
+    sumo, pyx, carla = res["readers"]["netconvert"], res["readers"]["pyxodr"], res["readers"]["carla"]
     assert pyx["available"] and pyx["ok"] and pyx["roads"] == 1 and pyx["max_reference_dev_m"] < 1e-3
+    assert not carla["available"] or (carla["ok"] and carla["lanes_walked"] == 1), carla
     if not sumo["available"]:
         pytest.skip(sumo["note"])
     assert sumo["returncode"] == 0 and not sumo["errors"] and not sumo["ok"]
@@ -170,6 +172,8 @@ def test_reader_warnings_are_reported_verbatim_not_judged(tmp_path: Path) -> Non
 def test_absent_readers_are_skipped_with_a_note(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     path = _map(tmp_path, _line(0, 0, 0, 0, 50), 50)
     monkeypatch.setenv("PATH", str(tmp_path))
+    monkeypatch.delenv("SUMO_HOME", raising=False)
+    monkeypatch.setattr(readers, "_pypi_sumo_home", lambda: None)
     monkeypatch.setitem(sys.modules, "pyxodr.road_objects.network", None)
     sumo, pyx = run_netconvert(path), run_pyxodr(path)
     assert sumo == {"available": False, "note": sumo["note"]} and "netconvert not installed" in sumo["note"]
@@ -191,3 +195,60 @@ def test_pyxodr_failure_is_an_error_of_the_reader(tmp_path: Path) -> None:
     pyx = run_pyxodr(path)
     assert pyx["available"] and not pyx["ok"]
     assert pyx["errors"] and "99" in pyx["errors"][0], pyx
+
+
+def _fake_sumo(home: Path, with_data: bool) -> Path:
+    """A SUMO_HOME whose bin/netconvert is a script that reports a version and writes nothing."""
+    exe = home / "bin" / "netconvert"
+    exe.parent.mkdir(parents=True)
+    exe.write_text("#!/bin/sh\necho 'Eclipse SUMO netconvert Version 0.0-fake'\n")
+    exe.chmod(0o755)
+    if with_data:
+        types = home / "data" / "typemap" / "opendriveNetconvert.typ.xml"
+        types.parent.mkdir(parents=True)
+        types.write_text("<types/>")
+    return exe
+
+
+def test_netconvert_comes_from_the_locked_pypi_package_unless_sumo_home_says_otherwise(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A fresh machine: no SUMO_HOME, nothing on PATH; the eclipse-sumo wheel brings netconvert and its data."""
+    monkeypatch.delenv("SUMO_HOME", raising=False)
+    monkeypatch.setenv("PATH", str(tmp_path))
+    found = readers.find_netconvert()
+    if found is None:
+        pytest.skip("PyPI eclipse-sumo not installed")
+    assert found.source == "PyPI eclipse-sumo" and found.exe.is_file()
+    assert (found.sumo_home / "data" / "typemap" / "opendriveNetconvert.typ.xml").is_file()
+    res = run_netconvert(_map(tmp_path, _line(0, 0, 0, 0, 50), 50))
+    assert res["version"].startswith("1.28") and res["ok"] and res["edges"] == 1, res
+    # an explicit SUMO_HOME wins; one that does not exist is named and not used
+    _fake_sumo(tmp_path / "sumo", with_data=True)
+    monkeypatch.setenv("SUMO_HOME", str(tmp_path / "sumo"))
+    assert readers.find_netconvert().exe == tmp_path / "sumo" / "bin" / "netconvert"
+    monkeypatch.setenv("SUMO_HOME", str(tmp_path / "absent"))
+    found = readers.find_netconvert()
+    assert found.source == "PyPI eclipse-sumo" and "absent does not exist" in found.note
+
+
+def test_netconvert_without_sumo_data_is_an_error_naming_it(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """What a fresh machine with Debian's sumo but no sumo-tools met: named instead of a types-file failure."""
+    _fake_sumo(tmp_path / "sumo", with_data=False)
+    monkeypatch.setenv("SUMO_HOME", str(tmp_path / "sumo"))
+    res = run_netconvert(_map(tmp_path, _line(0, 0, 0, 0, 50), 50))
+    assert res["available"] and not res["ok"] and res["version"] == "0.0"
+    types = "data/typemap/opendriveNetconvert.typ.xml"
+    assert res["errors"] == [f"SUMO's data is missing: no {types} in {tmp_path / 'sumo'}"]
+
+
+@pytest.mark.parametrize("namespace", ["http://www.opendrive.org",
+                                       "http://code.asam.net/simulation/standard/opendrive_schema"])
+def test_namespaced_map_checks_like_the_plain_one(tmp_path: Path, namespace: str) -> None:
+    """The ASAM checker's schemas have no namespace: it gets a plain copy, its rows still point into the file."""
+    plain = _map(tmp_path, _line(0, 0, 0, 0, 50) + _line(50, 50, 0.05, 0, 50), 100)
+    spaced = tmp_path / "spaced.xodr"
+    spaced.write_text(plain.read_text().replace("<OpenDRIVE>", f'<OpenDRIVE xmlns="{namespace}">'))
+    a, b = check_file(plain, readers=False), check_file(spaced, readers=False)
+    assert namespace in b["asam"]["note"] and "note" not in a["asam"]
+    assert b["asam"]["errors"] == a["asam"]["errors"] == 0 and b["reasons"] == a["reasons"]
+    assert b["continuity"] == a["continuity"] and b["ok"] is a["ok"] is False

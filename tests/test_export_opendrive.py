@@ -433,7 +433,7 @@ def test_asam_checker_and_independent_readers_accept_the_map(written) -> None:
 def test_sumo_warns_about_an_appearing_lane_unless_folded(written) -> None:
     """What the opt-in fold (export_sections.py) buys: with the appearing lane in a section of its own SUMO warns.
 
-    SUMO 1.15 gives each lane at most one successor, so a lane that appears has no incoming connection;
+    SUMO (1.15 and 1.28) gives each lane at most one successor, so a lane that appears has no incoming connection;
     it warns when the node has more than one incoming edge, which on a two-way road it always has (the
     left lanes' edge). Linking the appearing lane to its neighbour would be an ASAM error
     (road.lane.link.new_lane_appear). Folded into the section before at width 0, it loads cleanly.

@@ -20,19 +20,29 @@ Three parts:
   of its `to` lane at the connecting (linked) road's contact point, in 3D (reported, not judged:
   overlap zones of real maps may be wide on purpose).
 
-* `readers` (.xodr; `readers=False` skips them): two independent readers load the map as a user
-  would. `netconvert`: SUMO's converter with its default options (SUMO_HOME defaults to
-  /usr/share/sumo), every "Warning:"/"Error:" line verbatim and the edges/lanes/connections it
-  built; absent netconvert gives {"available": False, "note": ...}. `pyxodr`: the map loaded and
+* `readers` (.xodr; `readers=False` skips them): independent readers load the map as a user
+  would (quality/readers.py). `netconvert`: SUMO's converter with its default options (the
+  PyPI eclipse-sumo of the lock unless SUMO_HOME says otherwise), every "Warning:"/"Error:" line
+  verbatim and the edges/lanes/connections it built; absent netconvert gives
+  {"available": False, "note": ...}. `pyxodr`: the map loaded and
   everything evaluated (references, lane borders, successors, junction roads); Python warnings and
   printed lines are warnings, exceptions errors; `max_reference_dev_m` is how far its reference
-  points lie from ours. Reported, never part of the verdict: a reader's limits are not the file's
-  fault (SUMO 1.15 cannot read OpenDRIVE 1.8 direct junctions, and warns about a lane that appears
-  at a section change on a two-way road, which the standard requires to be unlinked; see
-  export_sections.py for how our maps avoid it).
+  points lie from ours. `carla`: CARLA's own parser (PyPI carla, offline), the map loaded, a
+  waypoint on every driving lane, a `wp.next()` walk along every lane through sections and links,
+  and its topology against the map's road links (quality/carla_reader.py). pyxodr and CARLA run
+  in child processes: a reader that crashes (CARLA segfaults on a lane link to a missing lane) is
+  an error of that reader, never of `check`. Reported, never part of the verdict: a reader's
+  limits are not the file's fault (SUMO 1.28 warns about a lane that appears at a section change
+  on a two-way road, which the standard requires to be unlinked).
+
+* `lane_widths` (.xodr, quality/lane_widths.py): `negative` lists every lane width record whose
+  cubic drops below 0 on its range (road, section, lane, s and the width there; an error);
+  `zero_width` and `narrow` the stretches of driving lanes kept at width ~0 or narrower than 1 m
+  (outside their tapers) for more than 30 m (warnings; the numbers are `CheckConfig`'s).
 
 Verdict: `ok` is False when the ASAM checker reports at least one error, when the project's
-OpenDRIVE reader cannot evaluate the geometry (`continuity.error`), or a leap exceeds
+OpenDRIVE reader cannot evaluate the geometry (`continuity.error`), a lane width record is
+negative somewhere, or a leap exceeds
 `LEAP_LIMIT_M` (1 mm) or a kink exceeds `KINK_LIMIT_RAD` (1 mrad), the limits issue #6 sets for
 built maps. Why so strict: readers that snap to the next piece make lane borders jump by many times
 the gap (a 1.4 cm gap moved borders by 30-81 cm), and a 1 mrad kink still shifts a border 11 m from
@@ -43,14 +53,10 @@ paramPoly3 length mismatches are reported but do not fail the verdict.
 
 from __future__ import annotations
 
-import contextlib
-import importlib.metadata
-import io
 import math
 import os
-import shutil
 import subprocess
-import warnings
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -60,18 +66,27 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from lidar2xodr.config import CheckConfig
 from lidar2xodr.errors import InputError
 from lidar2xodr.fileio import temp_dir
 from lidar2xodr.lifetime import child_preexec
+from lidar2xodr.quality.lane_widths import lane_widths
+from lidar2xodr.quality.readers import (
+    find_netconvert,
+    polyline_distance,
+    run_in_subprocess,
+    run_netconvert,
+    run_pyxodr,
+)
+
+__all__ = ["check_file", "continuity", "find_netconvert", "find_qc_venv", "junction_gaps", "polyline_distance",
+           "print_check", "run_asam_checker", "run_netconvert", "run_pyxodr"]
 
 LEAP_LIMIT_M = 0.001
 KINK_LIMIT_RAD = 0.001
 QC_ENV_VAR = "LIDAR2XODR_QC_VENV"
 QC_TIMEOUT_S = 900
 ARC_STEP_M = 0.05
-SUMO_HOME_DEFAULT = Path("/usr/share/sumo")
-READER_TIMEOUT_S = 600
-PYXODR_RESOLUTION_M = 0.5
 _LEVELS = {1: "error", 2: "warning", 3: "information"}
 _CHECKERS = {".xodr": ("qc_opendrive", "xodrBundle"), ".xosc": ("qc_openscenario", "xoscBundle")}
 
@@ -157,7 +172,8 @@ def run_asam_checker(path: Path, venv: Path | None = None) -> dict[str, Any]:
     venv = venv or find_qc_venv()
     with temp_dir(kind="qc") as tmp:
         cfg, result = Path(tmp) / "config.xml", Path(tmp) / "result.xqar"
-        _write_config(cfg, path.resolve(), bundle, result)
+        checked, namespace = _plain_copy(path, Path(tmp)) if module == "qc_opendrive" else (path, None)
+        _write_config(cfg, checked.resolve(), bundle, result)
         try:
             proc = subprocess.run([str(venv / "bin" / "python"), "-m", module, "-c", str(cfg)], cwd=tmp,
                                   capture_output=True, text=True, timeout=QC_TIMEOUT_S, check=False,
@@ -171,7 +187,31 @@ def run_asam_checker(path: Path, venv: Path | None = None) -> dict[str, Any]:
             raise InputError(path, f"the ASAM checker ({module}) failed: {tail[0]}")
         out = parse_result(result)
     out["checker"] = module
+    if namespace:
+        out["note"] = f"the root's namespace {namespace} was removed for the checker (its schemas declare none)"
     return out
+
+
+def _plain_copy(path: Path, tmp: Path) -> tuple[Path, str | None]:
+    """The map as the ASAM checker can validate it: a copy without an OpenDRIVE namespace, when it has one.
+
+    The checker's schemas have no target namespace, so it rejects `<OpenDRIVE xmlns=...>` outright;
+    the copy keeps every line where it was, so the issues' row numbers still point into the user's file.
+    """
+    from lidar2xodr.opendrive import OPENDRIVE_NAMESPACES, strip_namespace
+
+    try:
+        _, root = next(etree.iterparse(str(path), events=("start",)))
+        namespace = etree.QName(root).namespace
+    except (etree.XMLSyntaxError, OSError, StopIteration):
+        return path, None
+    if namespace not in OPENDRIVE_NAMESPACES:
+        return path, None
+    tree = etree.parse(str(path), etree.XMLParser(huge_tree=True))
+    strip_namespace(tree.getroot())
+    plain = tmp / path.name
+    tree.write(str(plain), xml_declaration=True, encoding=tree.docinfo.encoding or "UTF-8")
+    return plain, namespace
 
 
 def _arc_length(geom: Any) -> float:
@@ -314,120 +354,12 @@ def continuity(odr: Any) -> dict[str, Any]:
     }
 
 
-def _sumo_env() -> dict[str, str]:
-    env = dict(os.environ)
-    if not env.get("SUMO_HOME") and SUMO_HOME_DEFAULT.is_dir():
-        env["SUMO_HOME"] = str(SUMO_HOME_DEFAULT)
-    return env
+def check_file(path: Path, readers: bool = True, cfg: CheckConfig | None = None) -> dict[str, Any]:
+    """Check an .xodr (ASAM + continuity + independent readers) or an .xosc (ASAM); the result always holds `ok`.
 
-
-def run_netconvert(path: Path) -> dict[str, Any]:
-    """SUMO netconvert reads the map as a user would (`--opendrive-files MAP`, default options).
-
-    Every "Warning:" and "Error:" line is kept verbatim (`--aggregate-warnings -1`, so none is folded
-    into a count); the built network's edges, lanes and connections show that something was read.
-    Without netconvert on PATH: {"available": False, "note": ...}.
+    The ASAM checker and the readers are child processes started together; the continuity check
+    runs here meanwhile, so the whole check takes about as long as its slowest part.
     """
-    exe = shutil.which("netconvert")
-    if exe is None:
-        return {"available": False, "note": "SUMO netconvert not installed (Debian/Ubuntu package sumo): not checked"}
-    env = _sumo_env()
-    out: dict[str, Any] = {"available": True, "reader": "SUMO netconvert"}
-    try:
-        head = subprocess.run([exe, "--version"], capture_output=True, text=True, env=env, timeout=60, check=False,
-                              preexec_fn=child_preexec())
-        out["version"] = (head.stdout.strip().splitlines() or ["?"])[0].split("Version")[-1].strip()
-    except (OSError, subprocess.TimeoutExpired):
-        out["version"] = "?"
-    with temp_dir(kind="sumo") as tmp:
-        net = Path(tmp) / "map.net.xml"
-        cmd = [exe, "--opendrive-files", str(path.resolve()), "--aggregate-warnings", "-1", "-o", str(net)]
-        try:
-            proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=tmp, timeout=READER_TIMEOUT_S,
-                                  check=False, preexec_fn=child_preexec())
-        except subprocess.TimeoutExpired:
-            return {**out, "ok": False, "returncode": None, "warnings": [],
-                    "errors": [f"netconvert did not finish within {READER_TIMEOUT_S} s"]}
-        except OSError as exc:
-            return {**out, "ok": False, "returncode": None, "warnings": [],
-                    "errors": [f"cannot start netconvert: {exc}"]}
-        lines = [ln.strip() for ln in (proc.stdout + "\n" + proc.stderr).splitlines()]
-        out.update(returncode=proc.returncode, warnings=[ln for ln in lines if ln.startswith("Warning:")],
-                   errors=[ln for ln in lines if ln.startswith("Error:")], edges=0, lanes=0, connections=0)
-        if net.is_file():
-            root = etree.parse(str(net)).getroot()
-            edges = [e for e in root.iter("edge") if e.get("function") != "internal"]
-            out.update(edges=len(edges), lanes=sum(len(e.findall("lane")) for e in edges),
-                       connections=sum(not c.get("from", ":").startswith(":") for c in root.iter("connection")))
-    out["ok"] = out["returncode"] == 0 and not out["warnings"] and not out["errors"]
-    return out
-
-
-def polyline_distance(points: np.ndarray, poly: np.ndarray) -> np.ndarray:
-    """Distance of each point to a polyline (the segments beside its nearest vertex)."""
-    from scipy.spatial import cKDTree
-
-    _, i = cKDTree(poly).query(points)
-    best = np.full(len(points), np.inf)
-    for a, b in ((np.maximum(i - 1, 0), i), (i, np.minimum(i + 1, len(poly) - 1))):
-        seg = poly[b] - poly[a]
-        u = np.clip(np.sum((points - poly[a]) * seg, axis=1) / np.maximum(np.sum(seg * seg, axis=1), 1e-18), 0, 1)
-        best = np.minimum(best, np.linalg.norm(points - (poly[a] + u[:, None] * seg), axis=1))
-    return best
-
-
-def run_pyxodr(path: Path, odr: Any | None = None) -> dict[str, Any]:
-    """pyxodr (an independent Python reader) loads the map and evaluates everything a user would touch.
-
-    Every road (connecting roads included): reference line, lane offset, heights, every lane's
-    borders, centre and traffic-flow successors; every junction's incoming and outgoing roads (a
-    missing road is an error). Python warnings and anything printed are kept as warnings, exceptions
-    as errors. With the project's reader's `odr`, `max_reference_dev_m` is the largest distance of
-    pyxodr's reference points from ours (the two readers agree on the geometry).
-    """
-    try:
-        from pyxodr.road_objects.network import RoadNetwork
-    except ImportError:
-        return {"available": False, "note": "pyxodr not installed: not checked"}
-    out: dict[str, Any] = {"available": True, "reader": "pyxodr", "version": importlib.metadata.version("pyxodr"),
-                           "warnings": [], "errors": []}
-    printed = io.StringIO()
-    refs: dict[str, np.ndarray] = {}
-    with warnings.catch_warnings(record=True) as caught, contextlib.redirect_stdout(printed), \
-            contextlib.redirect_stderr(printed):
-        warnings.simplefilter("always")
-        try:
-            net = RoadNetwork(str(path), resolution=PYXODR_RESOLUTION_M)
-            roads = net.get_roads(include_connecting_roads=True)
-            for road in roads:
-                refs[str(road.id)] = np.asarray(road.reference_line)[:, :2]
-                _ = road.lane_offset_line, road.z_coordinates
-                for section in road.lane_sections:
-                    for lane in section.lanes:
-                        _ = lane.boundary_line, lane.centre_line, lane.traffic_flow_successors
-            for junction in net.get_junctions():
-                _ = junction.get_incoming_road_ids(), junction.get_outgoing_road_ids(net.road_ids_to_object)
-            out.update(roads=len(roads), junctions=len(net.get_junctions()))
-        except Exception as exc:  # any failure of the reader is its verdict on the file
-            out["errors"].append(f"{type(exc).__name__}: {exc}")
-    out["warnings"] += [f"{w.category.__name__}: {w.message}" for w in caught]
-    out["warnings"] += [ln for ln in printed.getvalue().splitlines() if ln.strip()]
-    if odr is not None and refs and not out["errors"]:
-        dev = 0.0
-        for rid, pts in refs.items():
-            road = odr.roads.get(rid)
-            if road is None or road.length <= 0:
-                continue
-            s = np.linspace(0.0, road.length, max(2, math.ceil(road.length / 0.05) + 1))
-            x, y, _ = road.reference(s)
-            dev = max(dev, float(polyline_distance(pts, np.column_stack([x, y])).max()))
-        out["max_reference_dev_m"] = dev
-    out["ok"] = not out["warnings"] and not out["errors"]
-    return out
-
-
-def check_file(path: Path, readers: bool = True) -> dict[str, Any]:
-    """Check an .xodr (ASAM + continuity + independent readers) or an .xosc (ASAM); the result always holds `ok`."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in _CHECKERS:
@@ -436,30 +368,43 @@ def check_file(path: Path, readers: bool = True) -> dict[str, Any]:
         raise InputError(path, "file not found")
     venv = find_qc_venv()
     result: dict[str, Any] = {"file": str(path), "kind": suffix[1:]}
-    result["asam"] = run_asam_checker(path, venv)
     reasons = []
-    if result["asam"]["errors"]:
-        reasons.append(f"{result['asam']['errors']} ASAM error(s)")
-    if suffix == ".xodr":
-        from lidar2xodr.opendrive import OpenDriveMap
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        asam = pool.submit(run_asam_checker, path, venv)
+        jobs: dict[str, Future] = {}
+        if suffix == ".xodr" and readers:
+            jobs = {"netconvert": pool.submit(run_netconvert, path),
+                    "pyxodr": pool.submit(run_in_subprocess, "pyxodr", path),
+                    "carla": pool.submit(run_in_subprocess, "carla", path)}
+        if suffix == ".xodr":
+            from lidar2xodr.opendrive import OpenDriveMap
 
-        odr = None
-        try:
-            odr = OpenDriveMap.load(path)
-            result["continuity"] = continuity(odr)
-        except InputError as exc:
-            result["continuity"] = {"error": str(exc)}
-            reasons.append(f"unreadable geometry: {exc.problem}")
-        if readers:
-            result["readers"] = {"netconvert": run_netconvert(path), "pyxodr": run_pyxodr(path, odr)}
+            try:
+                odr = OpenDriveMap.load(path)
+                result["continuity"] = continuity(odr)
+                result["lane_widths"] = lane_widths(odr, cfg)
+            except InputError as exc:
+                result["continuity"] = {"error": str(exc)}
+                reasons.append(f"unreadable geometry: {exc.problem}")
+        result["asam"] = asam.result()
+        if jobs:
+            result["readers"] = {name: job.result() for name, job in jobs.items()}
+    if result["asam"]["errors"]:
+        reasons.insert(0, f"{result['asam']['errors']} ASAM error(s)")
     cont = result.get("continuity", {})
     if cont.get("max_leap_m", 0.0) > LEAP_LIMIT_M:
         reasons.append(f"geometry leap {cont['max_leap_m']:.4f} m > {LEAP_LIMIT_M} m")
     if cont.get("max_kink_rad", 0.0) > KINK_LIMIT_RAD:
         reasons.append(f"heading kink {cont['max_kink_rad']:.4f} rad > {KINK_LIMIT_RAD} rad")
+    negative = result.get("lane_widths", {}).get("negative", [])
+    if negative:
+        w = negative[0]
+        reasons.append(f"{len(negative)} negative lane width record(s), first: road {w['road']} lane {w['lane']} "
+                       f"{w['width']:.3f} m at s={w['s']:.2f}")
     result["reasons"] = reasons
     result["ok"] = not reasons
     return result
+
 
 
 def print_check(result: dict[str, Any], console: Console, max_issues: int = 20) -> None:
@@ -481,6 +426,11 @@ def print_check(result: dict[str, Any], console: Console, max_issues: int = 20) 
         table.add_row("largest paramPoly3 length error (m)", f"{cont['max_length_error_m']:.4f}")
         if "junction_gap" in cont.get("worst", {}):
             table.add_row("largest lane border gap across a junction (m)", f"{cont['max_junction_gap_m']:.4f}")
+    widths = result.get("lane_widths", {})
+    if widths:
+        table.add_row("negative lane width records", str(len(widths["negative"])))
+        table.add_row("zero-width / narrow driving lane stretches",
+                      f"{len(widths['zero_width'])} / {len(widths['narrow'])}")
     for rd in result.get("readers", {}).values():
         if not rd["available"]:
             table.add_row("reader", rd["note"])
@@ -488,6 +438,8 @@ def print_check(result: dict[str, Any], console: Console, max_issues: int = 20) 
         text = f"{len(rd['warnings'])} warning(s), {len(rd['errors'])} error(s)"
         if "max_reference_dev_m" in rd:
             text += f", reference within {rd['max_reference_dev_m']:.4f} m of ours"
+        if "lanes_walked" in rd:
+            text += f", {rd['lanes_walked']} of {rd['driving_lanes']} driving lanes walked"
         table.add_row(f"{rd['reader']} {rd['version']}", text)
     console.print(table)
     groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
@@ -504,6 +456,8 @@ def print_check(result: dict[str, Any], console: Console, max_issues: int = 20) 
                       markup=False)
     if len(keys) > max_issues:
         console.print(f"  ... {len(keys) - max_issues} more kind(s) of issue (see --json)")
+    for line in widths.get("warnings", [])[:max_issues]:
+        console.print(f"  lane width warning: {line}", highlight=False, soft_wrap=True, markup=False)
     for rd in result.get("readers", {}).values():
         for line in (rd.get("errors", []) + rd.get("warnings", []))[:max_issues]:
             console.print(f"  {rd['reader']}: {line}", highlight=False, soft_wrap=True, markup=False)

@@ -317,11 +317,7 @@ class ExportConfig(_Section):
     plane_max_offset_m: float = Field(15.0, gt=0, description="ours: ground planes farther from the reference are "
                                                   "ignored")
     junction_blend_m: float = Field(30.0, gt=0, description="ours: a branch road is bent onto the road it leaves or "
-                                                "joins over this length from the junction (or its whole length if "
-                                                "shorter)")
-    junction_type: Literal["default", "direct"] = Field(
-        "default", description="ours: 'default' = classic junction with connecting roads (read by every reader, "
-        "SUMO 1.15 included); 'direct' = OpenDRIVE 1.7+ direct junction (no connecting roads)")
+                                    "joins over this length from the junction (or its whole length if shorter)")
     fold_appearing_lanes: bool = Field(False, description="ours, opt-in: an outer lane that opens from width 0 "
                                        "stays in the section before at width 0 instead of starting a section. Off "
                                        "by default: a lane exists where it has width (plus its taper); the fold "
@@ -404,6 +400,23 @@ class ReportConfig(_Section):
                                      "(road, id, type, width) when the pointer rests on it")
 
 
+class CheckConfig(_Section):
+    """`check`: lane widths a map should not have (issue #13: sliver lanes, zero-width lanes kept long)."""
+
+    narrow_lane_m: float = Field(1.0, gt=0, description="ours: a driving lane narrower than this holds no car "
+                                 "(~1.9 m wide); warned about where it stays so over more than narrow_lane_max_m")
+    narrow_lane_max_m: float = Field(30.0, gt=0, description="ours: longest narrow stretch outside a taper not "
+                                     "warned about (about 1 s at motorway speed)")
+    taper_m: float = Field(60.0, gt=0, description="ours: a lane whose width goes to or from 0 at a lane section's "
+                           "start or end is a taper over its first or last this many metres (compare's lane-graph "
+                           "rule)")
+    zero_width_m: float = Field(0.05, gt=0, description="ours: a lane narrower than this has zero width: it exists "
+                                "only for a reader's sake (no paint, no room)")
+    zero_width_max_m: float = Field(30.0, gt=0, description="ours: longest zero-width stretch not warned about (a "
+                                    "taper's first metre is far shorter)")
+    width_step_m: float = Field(0.5, gt=0, description="ours: lane widths are sampled this often along each section")
+
+
 class Config(_Section):
     extraction: ExtractionConfig = ExtractionConfig()
     markings: MarkingsConfig = MarkingsConfig()
@@ -412,6 +425,7 @@ class Config(_Section):
     evaluation: EvaluationConfig = EvaluationConfig()
     scenario: ScenarioConfig = ScenarioConfig()
     report: ReportConfig = ReportConfig()
+    check: CheckConfig = CheckConfig()
 
     @classmethod
     def load(cls, path: str | Path | None) -> Config:

@@ -98,11 +98,10 @@ Networks (`export_network`; `export_opendrive` is a network of one road, same by
   synthetic 0.2 m error: 2 mm off the markings beyond 30 m; constraints alone leave 1.5 cm there
   and overshoot 10 cm nearer). The summary's deviations compare with the model as given, so the
   snap shows in them.
-- Junction form (`junction_type`). Default "default": a classic junction with connecting roads, which
-  every reader understands; "direct" keeps the OpenDRIVE 1.7+ direct junction described above. Why:
-  SUMO 1.15 netconvert (Debian's, and any SUMO before direct-junction support) predates direct
-  junctions: it demands connectingRoad, which the 1.8 schema forbids there, so it stops with an
-  error, and with --ignore-errors joins the roads at a node and guesses the lanes. The classic form
+- Junction form: always a classic junction with connecting roads. The direct junction the roads
+  are first joined by is not written: no reader available here loads it (SUMO 1.28 netconvert
+  stops with "Attribute 'connectingRoad' is missing", which the 1.8 schema forbids there; CARLA
+  0.9.16 raises IndexError('_Map_base::at')). The classic form
   is derived from the written direct one by cutting, not refitting (`_classic_junctions`): each link
   gets a connecting road of ~`connecting_road_m` (20 m; snapped to the nearest lane-record, section or
   geometry break within half a lane record, at most the end lane section and half the road)
@@ -1571,11 +1570,15 @@ def _classic_junctions(root: etree._Element, cfg: ExportConfig,
 
 
 def export_network(network: RoadNetwork, planes: GroundPlanes | None, cfg: ExportConfig,
-                   path: Path) -> ExportSummary:
-    """Write the roads of `network` (ids 1..N in order) joined by direct junctions to `path` (atomically).
+                   path: Path, *, _direct: bool = False) -> ExportSummary:
+    """Write the roads of `network` (ids 1..N in order) joined by classic junctions to `path` (atomically).
 
-    Junction ids follow the road ids (N + 1, ...), so every id in the file is unique. Roads are built
-    in an order where every anchored end's partner is already written (see `_plan_joins`, `_anchor`).
+    The roads are first joined by direct junctions, then rewritten as classic ones by cutting
+    (`_classic_junctions`). `_direct` keeps that intermediate form, for tests of the joins only: no
+    reader available here loads it (SUMO 1.28: "connectingRoad is missing", CARLA 0.9.16:
+    IndexError). Junction ids follow the road ids (N + 1, ...), so every id in the file is unique.
+    Roads are built in an order where every anchored end's partner is already written (see
+    `_plan_joins`, `_anchor`).
     """
     wheres = _check_network(network, cfg)
     n = len(network.roads)
@@ -1635,7 +1638,7 @@ def export_network(network: RoadNetwork, planes: GroundPlanes | None, cfg: Expor
     joins = [(str(lk.incoming + 1), str(lk.outgoing + 1)) for lk in network.links if lk.continuation]
     connecting = 0
     root = etree.fromstring(data, etree.XMLParser(remove_blank_text=True, strip_cdata=False))
-    if network.links and cfg.junction_type == "default":
+    if network.links and not _direct:
         joins = _classic_junctions(root, cfg, set(joins))
         connecting = len(root.findall("road")) - n
     folded = fold_appearing_lanes(root) if cfg.fold_appearing_lanes else []

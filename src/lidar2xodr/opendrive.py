@@ -43,6 +43,12 @@ MARK_WIDTH_M = {"standard": 0.15, "bold": 0.30}
 BOTTS_DOT_M = (0.1, 1.0)
 """Dot length and spacing of 'botts dots' without an explicit pattern."""
 
+OPENDRIVE_NAMESPACES = ("http://www.opendrive.org", "http://code.asam.net/simulation/standard/opendrive_schema")
+"""Namespaces some exporters put on <OpenDRIVE> (the old opendrive.org one, ASAM's 1.8 schema): read as plain."""
+NEGATIVE_WIDTH_TOL_M = 1e-3
+"""A width below -this (1 mm, the project's leap limit) is negative; above it, rounding of the written
+coefficients of a taper that ends at exactly 0 (our exporter's folded tapers dip to -2.3e-7 m)."""
+
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(6)
 _FRESNEL_MAX_ARG = 50.0
 """Beyond this Fresnel argument (a clothoid piece far out on its spiral: large curvature, tiny
@@ -457,7 +463,20 @@ class OpenDriveMap:
             root = etree.parse(str(path), etree.XMLParser(huge_tree=True, remove_comments=True)).getroot()
         except (etree.XMLSyntaxError, OSError) as exc:
             raise InputError(path, f"malformed XML: {exc}") from None
-        return _Parser(path).map(root)
+        return _Parser(path).map(strip_namespace(root))
+
+    def negative_widths(self) -> list[NegativeWidth]:
+        """Every lane width record that is negative somewhere on its range (see `negative_widths`)."""
+        return [w for road in self.roads.values() for w in negative_widths(road)]
+
+    def require_nonnegative_widths(self) -> None:
+        """InputError naming file, road, lane and s of the first negative lane width."""
+        bad = self.negative_widths()
+        if bad:
+            w = bad[0]
+            more = f" (and {len(bad) - 1} more record(s))" if len(bad) > 1 else ""
+            raise InputError(f"{self.path} road {w.road} lane {w.lane}",
+                             f"lane width {w.width:.3f} m < 0 at s={w.s:.2f}{more}")
 
     def sample(self, step: float = 0.5) -> list[SampledSection]:
         """Every lane section of every road sampled at <= step spacing, both section ends included."""
@@ -517,6 +536,54 @@ _GEOMETRY_ATTRS = {
     "poly3": ("a", "b", "c", "d"),
     "paramPoly3": ("aU", "bU", "cU", "dU", "aV", "bV", "cV", "dV"),
 }
+
+
+def strip_namespace(root: etree._Element) -> etree._Element:
+    """The tree with an OpenDRIVE namespace (OPENDRIVE_NAMESPACES) removed from every element, so it reads as plain."""
+    ns = etree.QName(root).namespace
+    if ns is None or ns not in OPENDRIVE_NAMESPACES:
+        return root
+    for el in root.iter(etree.Element):
+        if etree.QName(el).namespace == ns:
+            el.tag = etree.QName(el).localname
+    etree.cleanup_namespaces(root)
+    return root
+
+
+@dataclass(frozen=True)
+class NegativeWidth:
+    """A lane width record whose polynomial drops below zero: where (road s) and how far."""
+
+    road: str
+    section: int
+    lane: int
+    s: float
+    width: float
+
+
+def negative_widths(road: Road) -> list[NegativeWidth]:
+    """The width records of a road's lanes that are < -NEGATIVE_WIDTH_TOL_M somewhere on their range.
+
+    Each cubic is checked at its range's ends and at the roots of its derivative inside it (its only
+    possible minima), so a dip between samples is not missed.
+    """
+    out = []
+    for k, sec in enumerate(road.lane_sections):
+        for lane in sec.lanes.values():
+            rec = lane.widths
+            for i, (start, (a, b, c, d)) in enumerate(zip(rec.starts, rec.coeffs, strict=True)):
+                end = rec.starts[i + 1] if i + 1 < len(rec.starts) else sec.s_end - sec.s
+                if end < start:
+                    continue
+                length = end - start
+                roots = np.roots([3 * d, 2 * c, b]) if (b, c, d) != (0.0, 0.0, 0.0) else np.array([])
+                inside = [r.real for r in roots if abs(r.imag) < 1e-12 and 0.0 < r.real < length]
+                ds = np.array([0.0, length, *inside])
+                vals = a + b * ds + c * ds**2 + d * ds**3
+                j = int(np.argmin(vals))
+                if vals[j] < -NEGATIVE_WIDTH_TOL_M:
+                    out.append(NegativeWidth(road.id, k, lane.id, float(sec.s + start + ds[j]), float(vals[j])))
+    return out
 
 
 class _Parser:

@@ -49,6 +49,7 @@ def plan(map_path: Path, opts: SimOptions) -> Plan:
     """The route and the drive length (one pass by default, laps when --length-m asks for more)."""
     where = str(map_path)
     odr = OpenDriveMap.load(map_path)
+    odr.require_nonnegative_widths()
     graph = RoadGraph(odr)
     nodes = longest_chain(graph, opts.start_road, where)
     closed = nodes[0] in graph.successors(nodes[-1]) and len(nodes) > 1
