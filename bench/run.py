@@ -109,6 +109,8 @@ def bench_map(name: str, xodr: Path, out: Path, length_m: float, lane_target: fl
         lane_graph=m.get("lane_graph", {}).get("agreement"),
         lane_graph_breaks=m.get("lane_graph", {}).get("breaks"),
         lane_graph_wrong_m=m.get("lane_graph", {}).get("wrong_m"),
+        lane_graph_unheld_m=m.get("lane_graph", {}).get("unheld_m"),
+        lane_graph_eval_m=m.get("lane_graph", {}).get("eval_length_m"),
         lane_target=lane_target,
     )
     lanes_ok = row["lane_count"] >= lane_target

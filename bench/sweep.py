@@ -56,6 +56,8 @@ LANE_COUNT_MIN = 0.98
 LANE_GRAPH_MIN = 0.98
 SHARE_MIN = 0.95
 BOUNDARIES_NEVER_M = 0.5
+UNHELD_ALL = 0.99
+"""A case whose reference lanes lie this much outside every built lane of their direction is told apart."""
 LEAP_MAX_M = 1e-3
 KINK_MAX_RAD = 1e-3
 
@@ -168,6 +170,10 @@ def failure_cause(row: dict) -> str | None:
             misses.append(f"{key} {'n/a' if v is None else f'{v:.3f}'} {worse} {limit:g}")
     if misses and row.get("lane_graph_breaks"):
         misses.append(f"{row['lane_graph_breaks']} lane-graph break(s)")
+    unheld, evaluated = row.get("lane_graph_unheld_m"), row.get("lane_graph_eval_m")
+    if misses and unheld is not None and evaluated and unheld >= UNHELD_ALL * evaluated:
+        misses.append("no built lane of the reference's travel direction lies under its lanes "
+                      "(wrong-way or misplaced lanes)")
     return "; ".join(misses) or None
 
 

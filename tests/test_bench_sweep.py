@@ -42,6 +42,9 @@ def test_summary_counts_targets_failures_and_worst_cases() -> None:
     assert s["worst"]["boundaries_rmse"][0] == {"map": "b", "seed": 1, "boundaries_rmse": 0.6}
     assert s["worst"]["lane_graph"][0]["map"] == "c"
     assert s["medians"]["boundaries_rmse"] == pytest.approx(0.05)
+    wrong_way = _row("w", boundaries_rmse=16.0, lane_graph=0.0, lane_graph_unheld_m=995.0, lane_graph_eval_m=1000.0)
+    assert "wrong-way" in sweep.failure_cause(wrong_way)
+    assert "wrong-way" not in sweep.failure_cause({**wrong_way, "lane_graph_unheld_m": 900.0})
     text = sweep.format_summary(s)
     assert "1/6 = 17 %" in text and "done when met: no" in text
 

@@ -220,3 +220,18 @@ def test_a_zero_width_placeholder_is_no_part_of_the_taper_chain(tmp_path: Path) 
         start_d, _ = g.chain_distances(61.0)
         assert start_d[g.index[("1", 1, -2)]] == pytest.approx(start)
         assert start_d[g.index[("1", 1, -1)]] == pytest.approx(61.0)
+
+
+def test_a_break_where_the_reference_is_not_evaluated_is_still_counted(tmp_path: Path) -> None:
+    """The generated lane -2 loses its link at s = 50, inside the reference lane's 1 m wide first
+    100 m (not evaluated): the break is counted where the evaluated length it makes wrong begins."""
+    ref = _write(tmp_path / "ref.xodr", _road("1", 300.0, [
+        _section(0, [_lane(-1, LANE, succ=-1), _lane(-2, 1.0, succ=-2)]),
+        _section(100, [_lane(-1, LANE, pred=-1), _lane(-2, LANE, pred=-2)])]))
+    gen = _write(tmp_path / "gen.xodr", _road("1", 300.0, [
+        _section(0, [_lane(-1, LANE, succ=-1), _lane(-2, LANE)]),
+        _section(50, [_lane(-1, LANE, pred=-1), _lane(-2, LANE)])]))
+    graph = compare_maps(gen, ref, CFG)["lane_graph"]
+    assert graph["breaks"] == 1 and graph["breaks_at"][0]["x"] == pytest.approx(100.0, abs=0.6)
+    assert graph["off_route_m"] == pytest.approx(200.0, abs=1.0)
+    assert graph["eval_length_m"] == pytest.approx(500.0, abs=1.0)

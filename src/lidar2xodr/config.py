@@ -347,7 +347,7 @@ class EvaluationConfig(_Section):
                                           "paper's 3.5 m lane; issue #13's 0.54 m sliver is far below it)")
     lane_graph_taper_m: float = Field(60.0, ge=0, description="ours: a narrower generated lane still counts within "
                                       "this length of its lane's first or last end (an opening or closing taper; "
-                                      "German motorway tapers run 60-70 m, RAA)")
+                                      "issue #13's 60 m, a little under roadgen's 70 m motorway taper)")
 
 
 class ScenarioConfig(_Section):
