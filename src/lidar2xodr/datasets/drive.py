@@ -18,7 +18,7 @@ import yaml
 from lidar2xodr.data import GeoOrigin, SensorInfo, Trajectory
 from lidar2xodr.datasets.base import RawScan, ScanFileDataset, check_trajectory, mount_from_xyzrpy
 from lidar2xodr.datasets.pointfiles import read_scan_file, scan_files
-from lidar2xodr.datasets.poses import poses_from_xyzrpy, read_pose_csv
+from lidar2xodr.datasets.poses import check_geodetic, poses_from_xyzrpy, read_pose_csv
 from lidar2xodr.errors import InputError
 
 FORMAT_NAME = "lidar2xodr-drive"
@@ -116,6 +116,9 @@ class DriveDataset(ScanFileDataset):
             alt=_number(meta_path, "origin.alt", origin.get("alt"), 0.0),
             proj=origin.get("proj"),
         )
+        if self.origin.lat is not None or self.origin.lon is not None:
+            check_geodetic(np.array([self.origin.lat or 0.0]), np.array([self.origin.lon or 0.0]),
+                           np.array([self.origin.alt]), f"{meta_path}: origin")
         scans = meta.get("scans") or {}
         scan_dir = path / str(scans.get("dir", "scans"))
         if not scan_dir.is_dir():
