@@ -156,7 +156,7 @@ def test_laz_truncated_in_the_middle_is_skipped(tmp_path: Path) -> None:
     bad = folder / "000000.laz"
     bad.write_bytes(data[: len(data) // 2])
     las.write(folder / "000001.laz", laz_backend=laspy.LazBackend.Lazrs)
-    assert "cannot decode" in assert_skipped(folder, bad)
+    assert "LAZ" in assert_skipped(folder, bad)  # the chunk table check or lazrs itself
 
 
 # --- PCD -----------------------------------------------------------------------------------------

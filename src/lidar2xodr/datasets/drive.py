@@ -16,7 +16,7 @@ import numpy as np
 import yaml
 
 from lidar2xodr.data import GeoOrigin, SensorInfo, Trajectory
-from lidar2xodr.datasets.base import RawScan, ScanFileDataset, check_trajectory, mount_from_xyzrpy
+from lidar2xodr.datasets.base import RawScan, ScanFileDataset, check_trajectory, mount_from_xyzrpy, one_line
 from lidar2xodr.datasets.pointfiles import read_scan_file, scan_files
 from lidar2xodr.datasets.poses import check_geodetic, poses_from_xyzrpy, read_pose_csv
 from lidar2xodr.errors import InputError
@@ -30,7 +30,7 @@ def is_drive(path: Path) -> bool:
         return False
     try:
         raw = yaml.safe_load(meta.read_text(encoding="utf-8"))
-    except (OSError, yaml.YAMLError):
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
         return True  # claimed by its name; DriveDataset reports the problem
     return isinstance(raw, dict) and raw.get("format") == FORMAT_NAME
 
@@ -82,8 +82,8 @@ class DriveDataset(ScanFileDataset):
             meta = yaml.safe_load(meta_path.read_text(encoding="utf-8"))
         except FileNotFoundError:
             raise InputError(meta_path, "missing: a drive directory needs meta.yaml") from None
-        except (OSError, yaml.YAMLError) as exc:
-            raise InputError(meta_path, f"cannot read: {exc}") from None
+        except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+            raise InputError(meta_path, f"cannot read: {one_line(exc)}") from None
         if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
             raise InputError(meta_path, f"'format' must be {FORMAT_NAME!r}")
         if meta.get("version") != 1:

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar2xodr.datasets.base import CorruptScan, RawScan, time_unit
+from lidar2xodr.datasets.base import CorruptScan, RawScan, one_line, time_unit
 from lidar2xodr.errors import InputError
 
 SCAN_SUFFIXES = (".pcd", ".las", ".laz", ".ply", ".bin", ".npy")
@@ -141,7 +141,7 @@ def read_pcd(path: Path) -> RawScan:
     try:
         arr = PointCloud.from_fileobj(io.BytesIO(data)).pc_data  # type: ignore[arg-type]
     except Exception as exc:  # pypcd4 raises many kinds on a broken file
-        raise CorruptScan(f"cannot decode PCD: {exc}") from None
+        raise CorruptScan(f"cannot decode PCD: {one_line(exc)}") from None
     return from_structured(arr, path)
 
 
@@ -200,12 +200,33 @@ def check_las_header(path: Path) -> None:
                         pos += LAS_EVLR_HEADER + struct.unpack_from("<Q", top, 20)[0]
                     if pos > size:
                         raise CorruptScan("the EVLRs run past the end of the file")
+            compressed = bool(fmt_id & 0x80)
+            if compressed:
+                _check_laz_chunk_table(fh, offset, size)
     except OSError as exc:
         raise CorruptScan(f"cannot read: {exc.strerror or exc}") from None
-    compressed = bool(fmt_id & 0x80)
     if not compressed and n_points * rec_len > end - offset:
         raise CorruptScan(f"truncated LAS: {n_points} points of {rec_len} bytes need {n_points * rec_len} bytes, "
                           f"{end - offset} present")
+
+
+def _check_laz_chunk_table(fh, offset: int, size: int) -> None:
+    """The LAZ chunk table (its offset is the first 8 bytes of the point data) must lie in the file
+    and hold no more chunks than the data has bytes: lazrs allocates 16 bytes per stated chunk
+    natively, and a failed native allocation aborts the process instead of raising."""
+    fh.seek(offset)
+    head = fh.read(8)
+    if len(head) < 8:
+        raise CorruptScan("LAZ point data has no chunk table offset")
+    (table,) = struct.unpack("<q", head)
+    if table == -1:
+        return  # not written: lazrs walks the chunks
+    if not offset + 8 <= table <= size - 8:
+        raise CorruptScan(f"LAZ chunk table offset {table} is outside the point data")
+    fh.seek(table)
+    _, n_chunks = struct.unpack("<II", fh.read(8))
+    if n_chunks > table - offset:
+        raise CorruptScan(f"LAZ chunk table states {n_chunks} chunks in {table - offset} bytes of point data")
 
 
 def read_las(path: Path, time_scale: float | None = None) -> RawScan:
@@ -229,7 +250,7 @@ def read_las(path: Path, time_scale: float | None = None) -> RawScan:
                 if "gps_time" in names:
                     raw_t.append(np.asarray(chunk.gps_time))
     except Exception as exc:  # laspy/lazrs raise several kinds on a broken file
-        raise CorruptScan(f"cannot decode LAS/LAZ: {exc}") from None
+        raise CorruptScan(f"cannot decode LAS/LAZ: {one_line(exc)}") from None
     points = np.concatenate(xyz) if xyz else np.zeros((0, 3))
     intensity = (np.concatenate(inten) if inten else np.zeros(0, np.uint16)) if "intensity" in names else None
     gps = (np.concatenate(raw_t) if raw_t else np.zeros(0)) if "gps_time" in names else None
@@ -274,7 +295,7 @@ def read_npy(path: Path) -> RawScan:
             fh.seek(0)
             arr = np.load(fh, allow_pickle=False)
     except (OSError, ValueError, EOFError, TypeError) as exc:
-        raise CorruptScan(f"cannot decode .npy: {exc}") from None
+        raise CorruptScan(f"cannot decode .npy: {one_line(exc)}") from None
     if arr.dtype.names:
         return from_structured(arr, path)
     if arr.ndim != 2 or arr.shape[1] < 3:

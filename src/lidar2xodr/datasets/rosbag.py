@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from lidar2xodr.data import GeoOrigin, SensorInfo, Trajectory
-from lidar2xodr.datasets.base import RawScan, ScanFileDataset, check_trajectory
+from lidar2xodr.datasets.base import RawScan, ScanFileDataset, check_trajectory, one_line
 from lidar2xodr.datasets.pointfiles import from_structured
 from lidar2xodr.datasets.poses import geodetic_to_local, poses_from_xyzrpy
 from lidar2xodr.errors import InputError
@@ -56,6 +56,36 @@ def is_rosbag(path: Path) -> bool:
     if path.is_file():
         return path.suffix in (".bag", ".mcap", ".db3")
     return (path / "metadata.yaml").is_file() or any(path.glob("*.bag"))
+
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def check_mcap_records(mcap: Path) -> None:
+    """InputError unless the MCAP file's top-level records (opcode, u64 length) tile the file.
+
+    rosbags reads a record with the length it states, so a lying length (random bytes, a flipped
+    bit) makes it allocate up to 2^64 bytes before it finds the file short.
+    """
+    import struct
+
+    try:
+        size = mcap.stat().st_size
+        with mcap.open("rb") as fh:
+            if fh.read(8) != MCAP_MAGIC:
+                raise InputError(mcap, "not an MCAP file (no MCAP magic)")
+            pos = 8
+            while pos + 9 <= size - 8:
+                fh.seek(pos)
+                op, length = struct.unpack("<BQ", fh.read(9))
+                if length > size - pos - 9:
+                    raise InputError(mcap, f"MCAP record 0x{op:02x} at byte {pos} states {length} bytes, "
+                                     f"{size - pos - 9} are left")
+                pos += 9 + length
+                if op == 0x02:  # footer
+                    break
+    except OSError as exc:
+        raise InputError(mcap, f"cannot read: {exc.strerror or exc}") from None
 
 
 def _mcap_custom_data(mcap: Path) -> dict[str, str] | None:
@@ -109,13 +139,14 @@ def _mcap_metadata(mcap: Path) -> dict[str, Any]:
     """rosbag2 metadata for a bare ROS 2 MCAP file, from its summary (channels, per-chunk counts)."""
     from rosbags.rosbag2.storage_mcap import MCAPFile
 
+    check_mcap_records(mcap)
     f = MCAPFile(mcap)
     try:
         f.open()
         if not f.channels:
             f.meta_scan()
     except Exception as exc:  # rosbags raises ReaderError, AssertionError, struct errors
-        raise InputError(mcap, f"cannot read MCAP: {exc}") from None
+        raise InputError(mcap, f"cannot read MCAP: {one_line(exc)}") from None
     finally:
         if f.bio is not None:
             f.close()
@@ -250,7 +281,7 @@ class RosbagDataset(ScanFileDataset):
         except InputError:
             raise
         except Exception as exc:  # AnyReaderError, and the struct, decoder and value errors of rosbags
-            raise InputError(path, f"cannot open bag: {exc}") from None
+            raise InputError(path, f"cannot open bag: {one_line(exc)}") from None
         if self.count == 0:
             raise InputError(path, f"topic {self.topic} has no messages")
         self.items = range(self.count)
@@ -363,7 +394,7 @@ class RosbagDataset(ScanFileDataset):
                 return
             except Exception as exc:  # rosbags raises struct, decompression and value errors
                 for j in range(k, max(self.count, k + 1)):
-                    self._bad(self._name(j), f"cannot read the bag from message {k} on: {exc}")
+                    self._bad(self._name(j), f"cannot read the bag from message {k} on: {one_line(exc)}")
                     yield None, None
                 return
             k += 1
@@ -380,7 +411,7 @@ class RosbagDataset(ScanFileDataset):
                     msg = reader.deserialize(rawdata, conn.msgtype)
                     arr = cloud_array(msg)
                 except Exception as exc:  # rosbags raises several kinds on a broken message
-                    self._bad(self._name(k), f"cannot decode PointCloud2: {exc}")
+                    self._bad(self._name(k), f"cannot decode PointCloud2: {one_line(exc)}")
                     yield k, None
                     continue
                 raw = from_structured(arr, self._name(k))
