@@ -61,6 +61,15 @@ def _mcap(tmp: Path, data: bytes) -> str:
     return f"ok {sum(1 for _ in ds)} scans"
 
 
+def _ros1_bag(tmp: Path, data: bytes) -> str:
+    from lidar2xodr.datasets.rosbag import RosbagDataset
+
+    path = tmp / "drive.bag"
+    path.write_bytes(data)
+    ds = RosbagDataset(path)
+    return f"ok {sum(1 for _ in ds)} scans"
+
+
 def _poses_csv(tmp: Path, data: bytes) -> str:
     from lidar2xodr.datasets.poses import read_pose_csv
 
@@ -97,7 +106,7 @@ def _xodr(tmp: Path, data: bytes) -> str:
 
 READERS: dict[str, Callable[[Path, bytes], str]] = {
     **{s: _scan_file(f".{s}") for s in ("pcd", "las", "laz", "ply", "bin", "npy")},
-    "mcap": _mcap, "poses": _poses_csv, "objects": _objects_csv, "meta": _meta_yaml, "xodr": _xodr,
+    "mcap": _mcap, "bag": _ros1_bag, "poses": _poses_csv, "objects": _objects_csv, "meta": _meta_yaml, "xodr": _xodr,
 }
 
 
@@ -243,6 +252,27 @@ def _seed_mcap() -> bytes:
         return next((Path(tmp) / "b").glob("*.mcap")).read_bytes()
 
 
+def _seed_bag() -> bytes:
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+    from test_datasets import CLOUD, _cloud_msg, _pose_msg
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "d.bag"
+        with Writer(path) as w:
+            c = w.add_connection("/points", CLOUD, typestore=ts)
+            p = w.add_connection("/pose", "geometry_msgs/msg/PoseStamped", typestore=ts)
+            for i in range(3):
+                w.write(p, int((50.0 + 0.05 * i) * 1e9),
+                        ts.serialize_ros1(_pose_msg(ts, 50.0 + 0.05 * i, i, True), "geometry_msgs/msg/PoseStamped"))
+            for k in range(2):
+                s = {**_scan(16, k), "t": 50.0 + 0.1 * k + np.linspace(0, 0.09, 16)}
+                w.write(c, int((50.1 + 0.1 * k) * 1e9),
+                        ts.serialize_ros1(_cloud_msg(ts, s, 50.1 + 0.1 * k, ros1=True), CLOUD))
+        return path.read_bytes()
+
+
 SEED_POSES = (b"time,x,y,z,roll,pitch,yaw,lat,lon,alt\n" + b"".join(
     f"{100 + 0.1 * i:.1f},{2.0 * i},0.5,0,0,0,0.1,48.0,9.0,300\n".encode() for i in range(6)))
 SEED_OBJECTS = (b"time,id,class,x,y,z,yaw,length,width,height,vx,vy\n" + b"".join(
@@ -268,7 +298,7 @@ def seeds() -> dict[str, bytes]:
     return {"pcd": _seed_pcd("BINARY"), "pcd_ascii": _seed_pcd("ASCII"), "pcd_lzf": _seed_pcd("BINARY_COMPRESSED"),
             "las": _seed_las(False), "laz": _seed_las(True), "ply": _seed_ply(),
             "bin": np.column_stack([_scan()["xyz"], _scan()["intensity"]]).astype("<f4").tobytes(),
-            "npy": _seed_npy(), "mcap": _seed_mcap(), "poses": SEED_POSES, "objects": SEED_OBJECTS,
+            "npy": _seed_npy(), "mcap": _seed_mcap(), "bag": _seed_bag(), "poses": SEED_POSES, "objects": SEED_OBJECTS,
             "meta": SEED_META, "xodr": SEED_XODR}
 
 
@@ -296,7 +326,8 @@ def test_the_seeds_are_valid(worker: Worker, seeds: dict[str, bytes]) -> None:
 # --- strategies ------------------------------------------------------------------------------------
 
 MAGIC = {"pcd": b"# .PCD v0.7\nVERSION 0.7\n", "las": b"LASF", "laz": b"LASF", "ply": b"ply\n",
-         "npy": b"\x93NUMPY\x01\x00", "mcap": b"\x89MCAP0\r\n", "bin": b"", "poses": b"time,x,y,z,yaw\n",
+         "npy": b"\x93NUMPY\x01\x00", "mcap": b"\x89MCAP0\r\n", "bag": b"#ROSBAG V2.0\n", "bin": b"",
+         "poses": b"time,x,y,z,yaw\n",
          "objects": b"time,id,class,x,y\n", "meta": b"format: lidar2xodr-drive\nversion: 1\n",
          "xodr": b"<?xml version='1.0'?><OpenDRIVE>"}
 
@@ -336,7 +367,7 @@ def _digit_runs(head: bytes) -> list[tuple[int, int]]:
     return [(m.start(), m.end()) for m in re.finditer(rb"\d+(\.\d+)?", head)][:200]
 
 
-KINDS = ["pcd", "las", "laz", "ply", "bin", "npy", "mcap", "poses", "objects", "meta", "xodr"]
+KINDS = ["pcd", "las", "laz", "ply", "bin", "npy", "mcap", "bag", "poses", "objects", "meta", "xodr"]
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -348,8 +379,8 @@ def test_random_bytes(worker: Worker, kind: str, data: st.DataObject) -> None:
     check(worker, kind, prefix + body)
 
 
-SEED_KEYS = ["pcd", "pcd_ascii", "pcd_lzf", "las", "laz", "ply", "bin", "npy", "mcap", "poses", "objects", "meta",
-             "xodr"]
+SEED_KEYS = ["pcd", "pcd_ascii", "pcd_lzf", "las", "laz", "ply", "bin", "npy", "mcap", "bag", "poses", "objects",
+             "meta", "xodr"]
 
 
 @pytest.mark.parametrize("key", SEED_KEYS)

@@ -88,6 +88,37 @@ def check_mcap_records(mcap: Path) -> None:
         raise InputError(mcap, f"cannot read: {exc.strerror or exc}") from None
 
 
+ROSBAG1_MAGIC = b"#ROSBAG V2.0\n"
+
+
+def check_bag_records(bag: Path) -> None:
+    """InputError unless a ROS 1 bag's records (u32 header length, header, u32 data length, data)
+    tile the file: rosbags reads each with the length it states (up to 4 GiB per read)."""
+    import struct
+
+    try:
+        size = bag.stat().st_size
+        with bag.open("rb") as fh:
+            if fh.read(len(ROSBAG1_MAGIC)) != ROSBAG1_MAGIC:
+                raise InputError(bag, "not a ROS 1 bag (no '#ROSBAG V2.0' line)")
+            pos = len(ROSBAG1_MAGIC)
+            while pos < size:
+                fh.seek(pos)
+                top = fh.read(4)
+                (n_head,) = struct.unpack("<I", top.ljust(4, b"\xff"))
+                if len(top) < 4 or n_head > size - pos - 8:
+                    raise InputError(bag, f"ROS bag record at byte {pos} states a {n_head}-byte header, "
+                                     f"{size - pos - 4} bytes are left")
+                fh.seek(pos + 4 + n_head)
+                (n_data,) = struct.unpack("<I", fh.read(4))
+                if n_data > size - pos - 8 - n_head:
+                    raise InputError(bag, f"ROS bag record at byte {pos} states {n_data} bytes of data, "
+                                     f"{size - pos - 8 - n_head} are left")
+                pos += 8 + n_head + n_data
+    except OSError as exc:
+        raise InputError(bag, f"cannot read: {exc.strerror or exc}") from None
+
+
 def _mcap_custom_data(mcap: Path) -> dict[str, str] | None:
     """`custom_data` of the rosbag2 metadata record an MCAP file embeds (via its summary's metadata
     index); None when there is none. Every offset and length is checked against the file size."""
@@ -174,6 +205,7 @@ def _mcap_metadata(mcap: Path) -> dict[str, Any]:
 def _bag_paths(path: Path, scratch: Path) -> list[Path]:
     """What AnyReader opens; a bare .mcap gets a generated metadata.yaml in `scratch`."""
     if path.is_file() and path.suffix == ".bag":
+        check_bag_records(path)
         return [path]
     if path.is_file():
         if (path.parent / "metadata.yaml").is_file():
@@ -188,6 +220,8 @@ def _bag_paths(path: Path, scratch: Path) -> list[Path]:
     if (path / "metadata.yaml").is_file():
         return [path]
     bags = sorted(path.glob("*.bag"))
+    for bag in bags:
+        check_bag_records(bag)
     if bags:
         return bags
     raise InputError(path, "no ROS bag found (a .bag file, a folder of .bag files, a rosbag2 folder or .mcap)")
