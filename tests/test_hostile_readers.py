@@ -288,14 +288,22 @@ def test_drive_path_symlink_loop_is_an_input_error(tmp_path: Path) -> None:
     assert_one_line_error(run_cli("extract", str(loop), "-o", str(out)), str(loop), out)
 
 
-def test_kitti_calibration_that_is_a_folder(tmp_path: Path) -> None:
-    velo = tmp_path / "velodyne_points" / "data"
-    velo.mkdir(parents=True)
-    np.column_stack([ground_scan(0)["xyz"], np.full(3200, 0.5)]).astype("<f4").tofile(velo / "0.bin")
-    (tmp_path / "calib_imu_to_velo.txt").mkdir()
-    # a folder is not a calibration file: the reader must not take it (nor crash on it)
-    ds = open_dataset(tmp_path)
-    assert ds.sensor.mount[2, 3] == pytest.approx(1.73)
+def test_scan_symlink_loop_is_counted_not_ignored(tmp_path: Path) -> None:
+    """A scan that cannot be opened used to vanish from the drive without a word."""
+    folder, bad = _folder_with(tmp_path, "000000.pcd", b"")
+    bad.unlink()
+    bad.symlink_to(bad)
+    for k in range(1, 3):
+        save_pcd(folder / f"{k:06d}.pcd", ground_scan(k, t0=100 + 0.1 * k))
+    assert "symbolic links" in assert_skipped(folder, bad, good=2)
+
+
+def test_poses_csv_that_is_a_folder(tmp_path: Path) -> None:
+    save_pcd(tmp_path / "0.pcd", ground_scan(0))
+    (tmp_path / "poses.csv").mkdir()
+    with pytest.raises(InputError, match="Is a directory") as err:
+        open_dataset(tmp_path)
+    one_line(err.value, tmp_path / "poses.csv")
 
 
 # --- poses ----------------------------------------------------------------------------------------

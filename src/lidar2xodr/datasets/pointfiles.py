@@ -321,8 +321,12 @@ def read_scan_file(path: Path) -> RawScan:
 
 
 def scan_files(folder: Path) -> list[Path]:
-    """Scan files of the most common supported type in `folder`, in natural (numeric) name order."""
-    files = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in SCAN_SUFFIXES]
+    """Scan files of the most common supported type in `folder`, in natural (numeric) name order.
+
+    Anything with a scan suffix that is not a folder counts, so that a broken link or an
+    unreadable file is reported as a skipped scan instead of vanishing from the drive.
+    """
+    files = [p for p in folder.iterdir() if p.suffix.lower() in SCAN_SUFFIXES and not p.is_dir()]
     if not files:
         return []
     suffixes = [p.suffix.lower().replace(".laz", ".las") for p in files]
