@@ -468,6 +468,17 @@ def test_too_many_corrupt_scans_give_one_error_line(small_synthetic_drive: Path,
     assert_one_line_error(run_cli("extract", str(drive), "-o", str(out)), str(drive), out)
 
 
+def test_latitude_200_in_the_drive_poses_is_exit_2(small_synthetic_drive: Path, tmp_path: Path) -> None:
+    """Issue #17 item 8: a latitude of 200 is bad input, exit 2 naming the file (it was not looked at)."""
+    drive = tmp_path / "d"
+    shutil.copytree(small_synthetic_drive, drive)
+    poses = drive / "poses.csv"
+    rows = poses.read_text().splitlines()
+    poses.write_text("\n".join([rows[0]] + [r.rsplit(",", 3)[0] + ",200.0,9.0,300.0" for r in rows[1:]]) + "\n")
+    out = tmp_path / "m.ply"
+    assert_one_line_error(run_cli("extract", str(drive), "-o", str(out)), str(poses), out)
+
+
 @pytest.fixture(scope="module")
 def small_synthetic_drive(tmp_path_factory) -> Path:
     return write_drive(make_drive(n_scans=12, n_ground=3000, seed=4), tmp_path_factory.mktemp("syn") / "d")
