@@ -86,7 +86,7 @@ def read_ply(path: str | Path) -> np.ndarray:
                 raise InputError(path, f"PLY element {tok[1]!r}: count {tok[2]!r} is not a non-negative integer")
             elements.append((tok[1], int(tok[2]), []))
         elif tok[0] == "property" and elements:
-            if tok[1] == "list":
+            if len(tok) >= 2 and tok[1] == "list":
                 elements[-1][2].append((tok[-1], "list"))
             elif len(tok) == 3 and tok[1] in _PLY_TYPES:
                 if any(tok[2] == name for name, _ in elements[-1][2]):
@@ -118,8 +118,9 @@ def read_ply(path: str | Path) -> np.ndarray:
                 return out
             need = count * dtype.itemsize
             if len(data) - offset < need:
-                raise InputError(path, f"truncated PLY: {count} vertices need {need} bytes, "
-                                 f"{len(data) - offset} present")
+                left = max(len(data) - offset, 0)
+                raise InputError(path, f"truncated PLY: {count} vertices need {need} bytes after "
+                                 f"{offset - body_start} bytes of earlier elements, {left} present")
             return np.frombuffer(data, dtype=dtype, count=count, offset=offset).astype(dtype.newbyteorder("="))
         offset += count * dtype.itemsize
         skip_rows += count
