@@ -302,7 +302,8 @@ def test_rosbag_holds_points_and_poses(drive: Drive) -> None:
     f.open()
     f.meta_scan()
     topics = {c.topic: c.schema for c in f.channels.values()}
-    assert topics == {"/lidar/points": "sensor_msgs/msg/PointCloud2", "/gnss/pose": "geometry_msgs/msg/PoseStamped"}
+    assert topics == {"/lidar/points": "sensor_msgs/msg/PointCloud2", "/gnss/pose": "geometry_msgs/msg/PoseStamped",
+                      "/tf_static": "tf2_msgs/msg/TFMessage"}
     from types import SimpleNamespace
 
     from rosbags.typesys import Stores, get_typestore
@@ -314,7 +315,10 @@ def test_rosbag_holds_points_and_poses(drive: Drive) -> None:
     for conn, _, raw in f.messages(conns):
         counts[conn.topic] = counts.get(conn.topic, 0) + 1
         first.setdefault(conn.topic, ts.deserialize_cdr(raw, conn.msgtype))
-    assert counts == {"/lidar/points": len(drive.scans), "/gnss/pose": len(drive.truth)}
+    assert counts == {"/lidar/points": len(drive.scans), "/gnss/pose": len(drive.truth), "/tf_static": 1}
+    (mount,) = first["/tf_static"].transforms
+    assert (mount.header.frame_id, mount.child_frame_id) == ("base_link", "lidar")
+    assert mount.transform.translation.z == pytest.approx(drive.mount_pos[2])
     cloud = first["/lidar/points"]
     assert cloud.width == len(read_pcd_plain(drive.scans[0])) and cloud.point_step == 24
     meas = load_poses(drive.root / "poses.csv")

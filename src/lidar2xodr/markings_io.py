@@ -69,8 +69,8 @@ def read_ply(path: str | Path) -> np.ndarray:
     except OSError as exc:
         raise InputError(path, f"cannot read: {exc.strerror or exc}") from None
     end = data.find(b"end_header")
-    if not data.startswith(b"ply") or end < 0:
-        raise InputError(path, "not a PLY file (no 'ply' magic or 'end_header')")
+    if not data.startswith(b"ply") or end < 0 or data.find(b"\n", end) < 0:
+        raise InputError(path, "not a PLY file (no 'ply' magic or no 'end_header' line)")
     body_start = data.index(b"\n", end) + 1
     lines = data[:end].decode("ascii", errors="replace").splitlines()
     fmt = None
@@ -82,11 +82,15 @@ def read_ply(path: str | Path) -> np.ndarray:
         if tok[0] == "format" and len(tok) >= 2:
             fmt = tok[1]
         elif tok[0] == "element" and len(tok) == 3:
+            if not tok[2].isdigit():
+                raise InputError(path, f"PLY element {tok[1]!r}: count {tok[2]!r} is not a non-negative integer")
             elements.append((tok[1], int(tok[2]), []))
         elif tok[0] == "property" and elements:
-            if tok[1] == "list":
+            if len(tok) >= 2 and tok[1] == "list":
                 elements[-1][2].append((tok[-1], "list"))
             elif len(tok) == 3 and tok[1] in _PLY_TYPES:
+                if any(tok[2] == name for name, _ in elements[-1][2]):
+                    raise InputError(path, f"PLY element {elements[-1][0]!r} has property {tok[2]!r} twice")
                 elements[-1][2].append((tok[2], _PLY_TYPES[tok[1]]))
             else:
                 raise InputError(path, f"unsupported PLY property line: {line!r}")
@@ -114,8 +118,9 @@ def read_ply(path: str | Path) -> np.ndarray:
                 return out
             need = count * dtype.itemsize
             if len(data) - offset < need:
-                raise InputError(path, f"truncated PLY: {count} vertices need {need} bytes, "
-                                 f"{len(data) - offset} present")
+                left = max(len(data) - offset, 0)
+                raise InputError(path, f"truncated PLY: {count} vertices need {need} bytes after "
+                                 f"{offset - body_start} bytes of earlier elements, {left} present")
             return np.frombuffer(data, dtype=dtype, count=count, offset=offset).astype(dtype.newbyteorder("="))
         offset += count * dtype.itemsize
         skip_rows += count

@@ -462,7 +462,7 @@ class OpenDriveMap:
         try:
             root = etree.parse(str(path), etree.XMLParser(huge_tree=True, remove_comments=True)).getroot()
         except (etree.XMLSyntaxError, OSError) as exc:
-            raise InputError(path, f"malformed XML: {exc}") from None
+            raise InputError(path, "malformed XML: " + " ".join(str(exc).split())) from None
         return _Parser(path).map(strip_namespace(root))
 
     def negative_widths(self) -> list[NegativeWidth]:

@@ -275,7 +275,7 @@ def _class_str(v: Any) -> str:
 def _rows_to_detections(rows: list[dict[str, Any]], path: Path, default_frame: str, first_row: int) -> _Detections:
     if not rows:
         raise InputError(path, "no detections")
-    keys = {k.strip().lower(): k for k in rows[0]}
+    keys = {k.strip().lower(): k for k in rows[0] if k is not None}  # None: values beyond the header
     col: dict[str, str] = {}
     for canon, aliases in _ALIASES.items():
         for a in aliases:

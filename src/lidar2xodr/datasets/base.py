@@ -10,8 +10,10 @@ has them. Decisions shared by every reader:
   facing open sky over a crest or off the end of the paved world returns nothing. A scan whose
   points all carry the same time in a format with per-point times (one return) counts as empty
   too: without a stamp it cannot be placed.
-- A file that cannot be read (truncated, corrupt) is skipped with a warning and listed in
-  `stats.bad_scans`; the extraction stage aborts when more than `max_bad_scan_share` are bad.
+- A file that cannot be read (truncated, corrupt) is skipped and listed in `stats.bad_scans`;
+  the extraction stage aborts when more than `max_bad_scan_share` are bad. Skips are not
+  reported one by one: a read that ends logs one warning line with the counts
+  (`ReadStats.summary`), a read that the extraction aborts leaves the one error line.
 - A scan without an intensity field, or scans whose stamps go backwards, are an InputError
   naming the file: both make the marking filter or the accumulation silently wrong.
 - A scan's stamp is the time of its last point when per-point times exist (the end of the
@@ -45,6 +47,20 @@ class ReadStats:
     dropped_points: int = 0
     scans_read: int = 0
     points_read: int = 0
+
+    def summary(self, total: int, where: str | Path) -> str | None:
+        """One line with what was skipped of `total` scans in `where`; None when nothing was."""
+        skipped = len(self.bad_scans) + self.empty_scans
+        if not skipped:
+            return None
+        parts = []
+        if self.bad_scans:
+            name, why = self.bad_scans[0]
+            first = name[len(str(where)):].lstrip("/") if name.startswith(f"{where}/") else name
+            parts.append(f"{len(self.bad_scans)} unreadable (first: {first}: {why})")
+        if self.empty_scans:
+            parts.append(f"{self.empty_scans} empty")
+        return f"skipped {skipped} of {total} scans in {where}: {', '.join(parts)}"
 
 
 @runtime_checkable
@@ -177,7 +193,12 @@ class ScanFileDataset:
 
     def _bad(self, name: str, reason: str) -> None:
         self.stats.bad_scans.append((name, reason))
-        log.warning("skipping scan %s: %s", name, reason)
+        log.debug("skipping scan %s: %s", name, reason)
+
+    def _report_skips(self) -> None:
+        line = self.stats.summary(len(self), self.path)
+        if line is not None:
+            log.warning("%s", line)
 
     def __iter__(self) -> Iterator[Scan]:
         self.stats = ReadStats()
@@ -190,6 +211,7 @@ class ScanFileDataset:
                 continue
             last_stamp = self._accept(k, scan.stamp, last_stamp)
             yield scan
+        self._report_skips()
 
     def _accept(self, k: int, stamp: float, last_stamp: float) -> float:
         if stamp < last_stamp:
@@ -236,6 +258,7 @@ class ScanFileDataset:
                 continue
             last_stamp = self._accept(k, stamp, last_stamp)
             yield payload
+        self._report_skips()
 
     def _clean(self, k: int, raw: RawScan) -> Scan | None:
         name = self._name(k)
@@ -259,7 +282,7 @@ class ScanFileDataset:
             times = None if times is None else times[ok]
         if len(xyz) == 0 or (raw.untimed and raw.stamp is None):
             self.stats.empty_scans += 1
-            log.info("skipping scan %s: %s", name, "no finite point" if len(xyz) == 0 else
+            log.debug("skipping scan %s: %s", name, "no finite point" if len(xyz) == 0 else
                      "its points share one time (a scan of one return cannot be placed in time)")
             return None
         if self.estimate_mount:
@@ -281,6 +304,11 @@ class ScanFileDataset:
         self.sensor.mount = estimate_mount(xyz, self.sensor.max_range_m)
         self.estimate_mount = False
         log.info("mount estimated from the ground: sensor %.2f m above the road", self.sensor.mount[2, 3])
+
+
+def one_line(text: object) -> str:
+    """A library's message (YAML and XML errors span lines) as one line, for InputError."""
+    return " ".join(str(text).split())
 
 
 def check_trajectory(times: np.ndarray, where: str | Path) -> None:

@@ -16,9 +16,9 @@ import numpy as np
 import yaml
 
 from lidar2xodr.data import GeoOrigin, SensorInfo, Trajectory
-from lidar2xodr.datasets.base import RawScan, ScanFileDataset, check_trajectory, mount_from_xyzrpy
+from lidar2xodr.datasets.base import RawScan, ScanFileDataset, check_trajectory, mount_from_xyzrpy, one_line
 from lidar2xodr.datasets.pointfiles import read_scan_file, scan_files
-from lidar2xodr.datasets.poses import poses_from_xyzrpy, read_pose_csv
+from lidar2xodr.datasets.poses import check_geodetic, poses_from_xyzrpy, read_pose_csv
 from lidar2xodr.errors import InputError
 
 FORMAT_NAME = "lidar2xodr-drive"
@@ -30,7 +30,7 @@ def is_drive(path: Path) -> bool:
         return False
     try:
         raw = yaml.safe_load(meta.read_text(encoding="utf-8"))
-    except (OSError, yaml.YAMLError):
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
         return True  # claimed by its name; DriveDataset reports the problem
     return isinstance(raw, dict) and raw.get("format") == FORMAT_NAME
 
@@ -53,6 +53,9 @@ POSE_HEADER = "time,x,y,z,roll,pitch,yaw,lat,lon,alt"
 def read_drive_poses(path: Path) -> Trajectory:
     """poses.csv as the simulator and converters write it, parsed by numpy (4x faster on 43k rows).
 
+    The lat lon alt columns are not used (the drive's origin is in meta.yaml) but must be valid
+    where filled: a latitude of 200 means the file is not what it claims to be.
+
     Anything else (other columns, empty or broken cells) goes to the general `read_pose_csv`,
     whose messages name the bad row; both give the same numbers.
     """
@@ -63,6 +66,8 @@ def read_drive_poses(path: Path) -> Trajectory:
             data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2, encoding="utf-8")
             if data.shape[1] == 10 and len(data) >= 2 and np.isfinite(data[:, :7]).all():
                 check_trajectory(data[:, 0], path)
+                geo = np.isfinite(data[:, 7]) & np.isfinite(data[:, 8])
+                check_geodetic(data[geo, 7], data[geo, 8], np.nan_to_num(data[geo, 9]), path)
                 return Trajectory(times=data[:, 0], poses=poses_from_xyzrpy(data[:, 1:4], data[:, 4:7]))
     except (OSError, UnicodeDecodeError, ValueError):
         pass
@@ -82,8 +87,8 @@ class DriveDataset(ScanFileDataset):
             meta = yaml.safe_load(meta_path.read_text(encoding="utf-8"))
         except FileNotFoundError:
             raise InputError(meta_path, "missing: a drive directory needs meta.yaml") from None
-        except (OSError, yaml.YAMLError) as exc:
-            raise InputError(meta_path, f"cannot read: {exc}") from None
+        except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+            raise InputError(meta_path, f"cannot read: {one_line(exc)}") from None
         if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
             raise InputError(meta_path, f"'format' must be {FORMAT_NAME!r}")
         if meta.get("version") != 1:
@@ -116,6 +121,9 @@ class DriveDataset(ScanFileDataset):
             alt=_number(meta_path, "origin.alt", origin.get("alt"), 0.0),
             proj=origin.get("proj"),
         )
+        if self.origin.lat is not None or self.origin.lon is not None:
+            check_geodetic(np.array([self.origin.lat or 0.0]), np.array([self.origin.lon or 0.0]),
+                           np.array([self.origin.alt]), f"{meta_path}: origin")
         scans = meta.get("scans") or {}
         scan_dir = path / str(scans.get("dir", "scans"))
         if not scan_dir.is_dir():

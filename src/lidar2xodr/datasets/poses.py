@@ -47,9 +47,22 @@ def local_tmerc(lat0: float, lon0: float) -> str:
     return f"+proj=tmerc +lat_0={lat0:.9f} +lon_0={lon0:.9f} +k=1 +x_0=0 +y_0=0 +ellps=WGS84 +units=m +no_defs"
 
 
-def geodetic_to_local(lat: np.ndarray, lon: np.ndarray, alt: np.ndarray) -> tuple[np.ndarray, GeoOrigin]:
-    """Project WGS84 positions into a tmerc frame centred on the first one."""
+def check_geodetic(lat: np.ndarray, lon: np.ndarray, alt: np.ndarray, where: str | Path) -> None:
+    """Latitudes within +-90 deg, longitudes within +-180 deg, all finite (InputError naming `where`)."""
+    for name, v, top in (("latitude", lat, 90.0), ("longitude", lon, 180.0), ("altitude", alt, np.inf)):
+        v = np.asarray(v, dtype=np.float64)
+        bad = np.flatnonzero(~np.isfinite(v) | (np.abs(v) > top))
+        if bad.size:
+            limit = "finite" if top == np.inf else f"within +-{top:g} deg"
+            raise InputError(where, f"{name} {float(v[bad[0]])!r} (value {bad[0] + 1}) is not {limit}")
+
+
+def geodetic_to_local(lat: np.ndarray, lon: np.ndarray, alt: np.ndarray,
+                      where: str | Path = "poses") -> tuple[np.ndarray, GeoOrigin]:
+    """Project WGS84 positions into a tmerc frame centred on the first one (checked, see `check_geodetic`)."""
     from pyproj import Transformer
+
+    check_geodetic(lat, lon, alt, where)
 
     proj = local_tmerc(float(lat[0]), float(lon[0]))
     tf = Transformer.from_crs("EPSG:4326", proj, always_xy=True)
@@ -66,11 +79,17 @@ def _column(header: list[str], key: str) -> int | None:
     return None
 
 
+POSE_CSV_REQUIRED = "time, yaw and x y z (local) or lat lon alt (geodetic)"
+POSE_CSV_OPTIONAL = {"roll": 0.0, "pitch": 0.0}
+
+
 def read_pose_csv(path: Path) -> tuple[Trajectory, GeoOrigin]:
-    """CSV with a header: time + x y z (local) or time + lat lon alt, + roll pitch yaw.
+    """CSV with a header: time + x y z (local) or time + lat lon alt, + yaw [+ roll pitch].
 
     Local x y z win when both are present (the drive format writes both); an empty lat/lon column
-    is allowed then. Angle columns missing entirely are taken as zero.
+    is allowed then and gives the origin. Required: time, yaw and a full position (a missing
+    heading or height would silently bend or flatten the drive); roll and pitch are optional and
+    taken as zero (a level vehicle) when their columns are absent.
     """
     try:
         with path.open(newline="", encoding="utf-8") as fh:
@@ -82,17 +101,18 @@ def read_pose_csv(path: Path) -> tuple[Trajectory, GeoOrigin]:
         raise InputError(path, "pose CSV needs a header and at least 2 rows")
     header, body = rows[0], rows[1:]
     cols = {k: _column(header, k) for k in _ALIASES}
-    if cols["time"] is None:
-        raise InputError(path, f"no time column in header {header}")
     local = all(cols[k] is not None for k in ("x", "y", "z"))
-    geo = all(cols[k] is not None for k in ("lat", "lon"))
-    if not local and not geo:
-        raise InputError(path, "pose CSV needs x,y,z or lat,lon columns")
+    geo = cols["lat"] is not None and cols["lon"] is not None
+    position = ("x", "y", "z") if local or not geo else ("lat", "lon", "alt")
+    missing = [k for k in ("time", *position, "yaw") if cols[k] is None]
+    if missing:
+        raise InputError(path, f"missing column(s) {', '.join(missing)} (required: {POSE_CSV_REQUIRED}; "
+                         f"found: {', '.join(h.strip() for h in header)})")
 
     def values(key: str, required: bool = True) -> np.ndarray:
         idx = cols[key]
         if idx is None:
-            return np.zeros(len(body))
+            return np.full(len(body), POSE_CSV_OPTIONAL[key])
         out = np.empty(len(body))
         for i, row in enumerate(body):
             cell = row[idx].strip() if idx < len(row) else ""
@@ -112,11 +132,13 @@ def read_pose_csv(path: Path) -> tuple[Trajectory, GeoOrigin]:
     if local:
         xyz = np.column_stack([values("x"), values("y"), values("z")])
         if geo:
-            lat, lon, alt = values("lat", False), values("lon", False), values("alt", False)
+            lat, lon = values("lat", False), values("lon", False)
+            alt = values("alt", False) if cols["alt"] is not None else np.zeros(len(body))
             if np.isfinite(lat[0]) and np.isfinite(lon[0]):
                 origin = GeoOrigin(lat=float(lat[0]), lon=float(lon[0]), alt=float(np.nan_to_num(alt[0])))
+                check_geodetic(lat[:1], lon[:1], np.nan_to_num(alt[:1]), path)
     else:
-        xyz, origin = geodetic_to_local(values("lat"), values("lon"), values("alt"))
+        xyz, origin = geodetic_to_local(values("lat"), values("lon"), values("alt"), path)
     if not (np.isfinite(xyz).all() and np.isfinite(rpy).all()):
         raise InputError(path, "poses contain non-finite values")
     return Trajectory(times=times, poses=poses_from_xyzrpy(xyz, rpy)), origin
@@ -172,5 +194,5 @@ def read_oxts(files: list[Path]) -> tuple[np.ndarray, GeoOrigin]:
             raise InputError(f, "OXTS packet needs finite lat lon alt roll pitch yaw")
         rows.append(vals)
     data = np.array(rows)
-    xyz, origin = geodetic_to_local(data[:, 0], data[:, 1], data[:, 2])
+    xyz, origin = geodetic_to_local(data[:, 0], data[:, 1], data[:, 2], files[0].parent)
     return poses_from_xyzrpy(xyz, data[:, 3:6]), origin

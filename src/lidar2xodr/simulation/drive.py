@@ -87,7 +87,8 @@ def run(map_path: Path, out_dir: Path, opts: SimOptions, console: Console | None
         (tmp / "truth").mkdir()
         col = PreviewCollector(preset.mount_xyz[2], preset.intensity_scale, n_scans * preset.rays_per_scan,
                                regions + tiles)
-        bag = W.BagWriter(tmp, geo.ok) if opts.rosbag else None
+        bag = W.BagWriter(tmp, geo.ok, (preset.mount_xyz, preset.mount_rpy), preset.intensity_scale) \
+            if opts.rosbag else None
         points, seen = _scans(tmp, lidar, traffic, agents, n_scans, col, bag, _stream(opts.seed, 5), console)
         outages = _poses(tmp, ego, geo, opts, bag)
         W.copy_map(map_path, tmp / "truth" / "map.xodr")

@@ -139,10 +139,15 @@ def copy_map(src: Path, dst: Path) -> None:
 
 
 class BagWriter:
-    """ROS 2 MCAP with sensor_msgs/PointCloud2 on /lidar/points, sensor_msgs/NavSatFix on /gnss/fix
-    (maps with a geoReference) and geometry_msgs/PoseStamped on /gnss/pose (map frame)."""
+    """ROS 2 MCAP with sensor_msgs/PointCloud2 on /lidar/points (frame `lidar`), sensor_msgs/NavSatFix
+    on /gnss/fix (maps with a geoReference), geometry_msgs/PoseStamped on /gnss/pose (the vehicle
+    frame `base_link` in the map frame) and the sensor mount `base_link` -> `lidar` on /tf_static,
+    as a ROS driver stack records it (without it a reader can only guess the mount); the raw
+    intensity of 100 % goes into the bag's custom data `lidar2xodr.intensity_scale`."""
 
-    def __init__(self, out_dir: Path, with_fix: bool) -> None:
+    def __init__(self, out_dir: Path, with_fix: bool,
+                 mount: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None,
+                 intensity_scale: float | None = None) -> None:
         from rosbags.rosbag2 import StoragePlugin, Writer
         from rosbags.typesys import Stores, get_typestore
 
@@ -151,10 +156,28 @@ class BagWriter:
         self.target = out_dir / "drive.mcap"
         self.w = Writer(self.tmp, version=8, storage_plugin=StoragePlugin.MCAP)
         self.w.open()
+        if intensity_scale is not None:  # the raw value of 100 % (Livox: 150), read back by our reader
+            self.w.set_custom_data("lidar2xodr.intensity_scale", repr(float(intensity_scale)))
         self.c_pts = self.w.add_connection("/lidar/points", "sensor_msgs/msg/PointCloud2", typestore=self.ts)
         self.c_pose = self.w.add_connection("/gnss/pose", "geometry_msgs/msg/PoseStamped", typestore=self.ts)
         self.c_fix = self.w.add_connection("/gnss/fix", "sensor_msgs/msg/NavSatFix", typestore=self.ts) \
             if with_fix else None
+        self.mount = mount
+        self.c_tf = self.w.add_connection("/tf_static", "tf2_msgs/msg/TFMessage", typestore=self.ts) \
+            if mount is not None else None
+
+    def _tf_static(self, t: float) -> None:
+        """The mount (position, roll pitch yaw in rad, R = Rz Ry Rx) as one static transform."""
+        from scipy.spatial.transform import Rotation
+
+        assert self.mount is not None and self.c_tf is not None
+        T, g = self.ts.types, "geometry_msgs/msg/"
+        (x, y, z), (roll, pitch, yaw) = self.mount
+        q = Rotation.from_euler("ZYX", [yaw, pitch, roll]).as_quat()
+        tf = T[g + "Transform"](T[g + "Vector3"](float(x), float(y), float(z)), T[g + "Quaternion"](*map(float, q)))
+        msg = T["tf2_msgs/msg/TFMessage"]([T[g + "TransformStamped"](self._header(t, "base_link"), "lidar", tf)])
+        self.w.write(self.c_tf, _ns(t), self.ts.serialize_cdr(msg, "tf2_msgs/msg/TFMessage"))
+        self.mount = None
 
     def _header(self, t: float, frame: str):
         T = self.ts.types
@@ -163,6 +186,8 @@ class BagWriter:
                                         frame)
 
     def scan(self, t: float, scan: ScanOut) -> None:
+        if self.mount is not None:
+            self._tf_static(t)
         T = self.ts.types
         pf = T["sensor_msgs/msg/PointField"]
         n = len(scan.t)
