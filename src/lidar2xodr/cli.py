@@ -498,5 +498,24 @@ def config_cmd(
               highlight=False)
 
 
+@app.command("export-lanelet2")
+@_clean_errors
+def export_lanelet2(
+    map_path: Path = typer.Argument(..., metavar="MAP.xodr", help="The OpenDRIVE map to convert."),
+    output: Path = typer.Option(..., "--output", "-o", help="The Lanelet2 map to write (.osm)."),
+    config: Path | None = ConfigOpt,
+) -> None:
+    """Lanelet2 (.osm) for Autoware: lanelets with shared, mark-tagged bounds, routable like the lane links."""
+    from lidar2xodr.config import Config
+    from lidar2xodr.export_lanelet2 import export_lanelet2 as run_export
+
+    s = run_export(map_path, output, Config.load(config).interchange)
+    out.print(f"wrote {output}: {s.lanelets} lanelets, {s.linestrings} linestrings, {s.points:,} points, "
+              f"{s.joined_ends} linked lane ends joined; projector origin {s.origin_lat:.7f} N "
+              f"{s.origin_lon:.7f} E", highlight=False)
+    for warning in s.warnings:
+        console.print(f"[yellow]warning:[/] {warning}", highlight=False, soft_wrap=True)
+
+
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(app())
