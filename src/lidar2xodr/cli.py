@@ -517,5 +517,23 @@ def export_lanelet2(
         console.print(f"[yellow]warning:[/] {warning}", highlight=False, soft_wrap=True)
 
 
+@app.command("export-geojson")
+@_clean_errors
+def export_geojson(
+    map_path: Path = typer.Argument(..., metavar="MAP.xodr", help="The OpenDRIVE map to convert."),
+    output: Path = typer.Option(..., "--output", "-o", help="The GeoJSON file to write (WGS84)."),
+    config: Path | None = ConfigOpt,
+) -> None:
+    """GeoJSON (RFC 7946, WGS84) of the lanes, lane borders and reference lines, for GIS tools."""
+    from lidar2xodr.config import Config
+    from lidar2xodr.export_geojson import export_geojson as run_export
+
+    s = run_export(map_path, output, Config.load(config).interchange)
+    out.print(f"wrote {output}: {s.reference_lines} reference lines, {s.lanes} lanes, {s.boundaries} lane "
+              f"borders", highlight=False)
+    for warning in s.warnings:
+        console.print(f"[yellow]warning:[/] {warning}", highlight=False, soft_wrap=True)
+
+
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(app())
