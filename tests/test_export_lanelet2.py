@@ -9,6 +9,7 @@ The expected routes come from the OpenDRIVE links, turned into travel direction 
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import lanelet2
@@ -299,3 +300,34 @@ def test_bad_map_is_one_line_and_exit_2(tmp_path: Path) -> None:
     assert not out.exists()
     with pytest.raises(InputError):
         export_lanelet2(bad, out, InterchangeConfig())
+
+
+@pytest.mark.slow
+def test_build_writes_lanelet2_and_geojson_next_to_the_map(tmp_path: Path) -> None:
+    """`build --lanelet2 --geojson` on a simulated drive: both files, routable and the same lanes as the map."""
+    from typer.testing import CliRunner
+
+    from lidar2xodr.demo_road import write_demo_road
+    from lidar2xodr.simulation import SimOptions, simulate
+
+    drive = tmp_path / "drive"
+    simulate(write_demo_road(tmp_path / "truth.xodr"), drive, SimOptions(length_m=400.0, seed=1, traffic="none"))
+    xodr, osm, gj = tmp_path / "map.xodr", tmp_path / "map.osm", tmp_path / "map.geojson"
+    res = CliRunner().invoke(app, ["build", str(drive), "-o", str(xodr), "--lanelet2", str(osm), "--geojson", str(gj)])
+    assert res.exit_code == 0, res.output
+    again = tmp_path / "again"
+    again.mkdir()
+    _routes_as_linked(xodr, again)
+    assert (again / "map.osm").read_bytes() == osm.read_bytes()  # what build wrote is what routes
+
+    lanes = {(f["properties"]["road"], f["properties"]["section"], f["properties"]["lane"])
+             for f in json.loads(gj.read_text())["features"] if f["properties"]["kind"] == "lane"}
+    expected = set()
+    for rid, road in OpenDriveMap.load(xodr).roads.items():
+        for k, ls in enumerate(road.lane_sections):
+            s = np.linspace(ls.s, ls.s_end - 1e-7, 200)
+            for lid in ls.lanes:
+                inner = lid - (1 if lid > 0 else -1)
+                if lid and np.abs(road.border_t(s, lid) - road.border_t(s, inner)).max() > 1e-3:
+                    expected.add((rid, k, lid))
+    assert lanes == expected  # every lane with an area, nothing else

@@ -250,12 +250,14 @@ def build(
     pose_topic: str | None = _opt(None, "--pose-topic", help="Pose topic of a bag (when it has several)."),
     intensity_scale: float | None = _opt(None, "--intensity-scale",
                                          help="Raw intensity that means 100 % (folders, bags)."),
+    lanelet2: Path | None = _opt(None, "--lanelet2", help="Also write the map as Lanelet2 (.osm)."),
+    geojson: Path | None = _opt(None, "--geojson", help="Also write the map as GeoJSON (WGS84)."),
 ) -> None:
     """The whole pipeline: extract markings, build lanes, export a checked OpenDRIVE map."""
     from lidar2xodr.config import Config
     from lidar2xodr.pipeline import BuildPipeline, prepare_outputs
 
-    prepare_outputs([output, scenario], [(report, "report"), (keep_intermediate, "intermediate")])
+    prepare_outputs([output, scenario, lanelet2, geojson], [(report, "report"), (keep_intermediate, "intermediate")])
     cfg = Config.load(config)
     if odometry:
         cfg = cfg.model_copy(update={"extraction": cfg.extraction.model_copy(update={"odometry": odometry.value})})
@@ -265,6 +267,7 @@ def build(
         drive, output, cfg, data_format=data_format.value if data_format else None, report_dir=report,
         scenario=scenario, keep_intermediate=keep_intermediate, allow_invalid=allow_invalid, reference=reference,
         console=console, topic=topic, pose_topic=pose_topic, intensity_scale=intensity_scale,
+        lanelet2=lanelet2, geojson=geojson,
     ).run()
     from lidar2xodr.pipeline import print_summary
 
