@@ -122,3 +122,15 @@ def test_no_geo_reference_is_a_clear_error(tmp_path: Path) -> None:
     res = CliRunner().invoke(app, ["export-geojson", str(xodr), "-o", str(out)])
     assert res.exit_code == 2 and "local.xodr" in res.output and "Traceback" not in res.output
     assert not out.exists()
+
+
+def test_carla_style_geo_reference_is_a_tmerc_at_its_origin() -> None:
+    """CARLA writes '+lat_0=49 +lon_0=8' without +proj: read as a transverse Mercator there."""
+    from lidar2xodr.georeference import ToWgs84
+
+    geo = ToWgs84("+lat_0=4.9000000000000000e+1 +lon_0=8.0000000000000000e+0", "Town04.xodr")
+    assert (geo.origin_lon, geo.origin_lat) == pytest.approx((8.0, 49.0), abs=1e-12)
+    lon, lat = geo.lonlat(np.array([0.0, 1000.0]), np.array([1000.0, 0.0]))
+    assert lat[0] == pytest.approx(49.0 + 1000.0 / 111_200.0, abs=2e-4) and lon[1] > 8.0
+    with pytest.raises(InputError, match="not a usable PROJ string"):
+        ToWgs84("+proj=nonsense", "bad.xodr")

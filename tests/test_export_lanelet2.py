@@ -15,6 +15,7 @@ from pathlib import Path
 import lanelet2
 import numpy as np
 import pytest
+from conftest import shared_maps
 from lanelet2.core import BasicPoint3d
 from lanelet2.routing import RoutingGraph
 from lanelet2.traffic_rules import Locations, Participants
@@ -99,16 +100,17 @@ def _key(ll) -> Key:
 
 
 def _travel_edges(odr: OpenDriveMap) -> set[tuple[Key, Key]]:
-    """Lane-to-lane successors in travel direction, read from the map's links (right-hand traffic)."""
+    """Lane-to-lane successors in travel direction, read from the map's links (links to missing lanes dropped)."""
     edges: set[tuple[Key, Key]] = set()
 
     def drivable(rid: str, k: int, lid: int) -> bool:
-        return lid != 0 and odr.roads[rid].lane_sections[k].lanes[lid].type in DRIVABLE
+        lane = odr.roads[rid].lane_sections[k].lanes.get(lid)
+        return lid != 0 and lane is not None and lane.type in DRIVABLE
 
     def join(a: tuple[str, int, bool, int], b: tuple[str, int, bool, int]) -> None:
         if not (drivable(a[0], a[1], a[3]) and drivable(b[0], b[1], b[3])):
             return
-        a_leaves, b_leaves = (a[3] < 0) == a[2], (b[3] < 0) == b[2]  # driven towards this end
+        a_leaves, b_leaves = _along_s(odr, a[0], a[3]) == a[2], _along_s(odr, b[0], b[3]) == b[2]
         if a_leaves != b_leaves:
             src, dst = (a, b) if a_leaves else (b, a)
             edges.add(((src[0], src[1], src[3]), (dst[0], dst[1], dst[3])))
@@ -140,6 +142,21 @@ def _travel_edges(odr: OpenDriveMap) -> set[tuple[Key, Key]]:
     return edges
 
 
+def _bridge(edges: set[tuple[Key, Key]], kept: set[Key]) -> set[tuple[Key, Key]]:
+    """The edges with every lane not in `kept` (too short for a lanelet) contracted: a -> t -> b is a -> b."""
+    edges = set(edges)
+    for t in sorted({k for e in edges for k in e} - kept):
+        into = {a for a, b in edges if b == t and a != t}
+        out = {b for a, b in edges if a == t and b != t}
+        edges = {e for e in edges if t not in e} | {(a, b) for a in into for b in out}
+    return edges
+
+
+def _along_s(odr: OpenDriveMap, rid: str, lid: int) -> bool:
+    """Right lanes are driven along s under right-hand traffic, left lanes under left-hand traffic."""
+    return (lid < 0) == (odr.roads[rid].rule != "LHT")
+
+
 def _load(xodr: Path, osm: Path):
     """The written map loaded back with the exporter's projector, and lanelet2's routing graph of it."""
     projector, to_geo, _ = projector_for(OpenDriveMap.load(xodr))
@@ -163,8 +180,9 @@ def _routes_as_linked(xodr: Path, tmp_path: Path) -> tuple:
     odr = OpenDriveMap.load(xodr)
     lanelets = list(lmap.laneletLayer)
     assert len(lanelets) == summary.lanelets
+    short = InterchangeConfig().min_lanelet_length_m
     drivable = {(rid, k, lid) for rid, r in odr.roads.items() for k, ls in enumerate(r.lane_sections)
-                for lid, lane in ls.lanes.items() if lid != 0 and lane.type in DRIVABLE}
+                for lid, lane in ls.lanes.items() if lid != 0 and lane.type in DRIVABLE and ls.s_end - ls.s >= short}
     assert {_key(ll) for ll in lanelets} == drivable
     got: set[tuple[Key, Key]] = set()
     for ll in lanelets:
@@ -172,7 +190,7 @@ def _routes_as_linked(xodr: Path, tmp_path: Path) -> tuple:
         same = [f for f in nxt if _key(f) == _key(ll)]
         assert len(same) <= 1 and (not same or len(nxt) == 1), f"{_key(ll)} splits inside its own lane"
         got.update((_key(ll), _key(f)) for f in nxt if _key(f) != _key(ll))
-    assert got == _travel_edges(odr)
+    assert got == _bridge(_travel_edges(odr), drivable)
     return odr, lmap, graph, (projector, to_geo), summary
 
 
@@ -182,16 +200,19 @@ def _lane_changes(odr: OpenDriveMap, lmap, graph, frame) -> int:
     for ll in lmap.laneletLayer:
         rid, k, lid = _key(ll)
         road, ls = odr.roads[rid], odr.roads[rid].lane_sections[k]
-        outer = lid - 1 if lid < 0 else lid + 1  # the neighbour on the right in travel direction
-        if outer not in ls.lanes or ls.lanes[outer].type not in DRIVABLE:
+        fwd = _along_s(odr, rid, lid)
+        outer = lid - 1 if fwd else lid + 1  # the neighbour on the right in travel direction
+        outer = outer or (-1 if fwd else 1)
+        if outer not in ls.lanes or ls.lanes[outer].type not in DRIVABLE or _along_s(odr, rid, outer) != fwd:
             assert graph.right(ll) is None and graph.adjacentRight(ll) is None
             continue
-        # the road mark on the border between them (lane lid's outer border) in the lanelet's middle
+        border = (1 if lid > 0 else -1) * min(abs(lid), abs(outer))
+        # the road mark on the border between them in the lanelet's middle
         mid = _map_xy([ll.centerline[len(ll.centerline) // 2]], *frame)[0]
         s = np.linspace(ls.s, ls.s_end, 4001)
         x, y, _ = road.reference(s)
         ds = float(s[np.argmin(np.hypot(x - mid[0], y - mid[1]))] - ls.s)
-        marks = [m for m in ls.lanes[lid].road_marks if m.s_offset <= ds]
+        marks = [m for m in ls.lanes[border].road_marks if m.s_offset <= ds]
         kind = marks[-1].type if marks else "none"
         if " " in kind:
             continue
@@ -277,6 +298,15 @@ def test_demo_road_routes_through_its_added_lane(tmp_path: Path) -> None:
     assert _lane_changes(odr, lmap, graph, frame) > 0
     highway = {ll.attributes["subtype"] for ll in lmap.laneletLayer}
     assert highway == {"highway" if odr.roads["1"].types and odr.roads["1"].types[0].type == "motorway" else "road"}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("path", shared_maps(), ids=lambda p: f"{p.parent.name}/{p.stem}")
+def test_every_shared_map_routes_as_linked(path: Path, tmp_path: Path) -> None:
+    """Third-party maps (esmini, ASAM examples, CARLA Town04, maliput): lanelet2 routes them as their links do."""
+    odr, lmap, graph, frame, summary = _routes_as_linked(path, tmp_path)
+    _lane_changes(odr, lmap, graph, frame)
+    assert not [w for w in summary.warnings if "not joined" in w]
 
 
 def test_esmini_highway_exit(shared_data: Path, tmp_path: Path) -> None:

@@ -412,6 +412,9 @@ class InterchangeConfig(_Section):
     join_tolerance_m: float = Field(0.1, gt=0, description="ours: the ends of two linked lanes this close become "
                                     "one point, so Lanelet2 routes from one to the other; farther apart they stay "
                                     "apart with a warning (a gap in the map, not ours to close)")
+    min_lanelet_length_m: float = Field(0.01, ge=0, description="ours: a lane section shorter than this (CARLA's "
+                                        "Town04 has some of 1e-7 m) gets no lanelets: the lanelets before and after "
+                                        "it meet; Lanelet2's .osm keeps ~1 um, so shorter ones lose their direction")
     default_location: Literal["urban", "nonurban"] = Field(
         "nonurban", description="ours: Lanelet2 location of a road whose OpenDRIVE <type> does not say (town* and "
         "lowSpeed types are urban, the rest nonurban)")

@@ -18,6 +18,8 @@
 - Positions: the map's local x, y go to WGS84 through its geoReference (pyproj), then into the
   local frame of a lanelet2 UtmProjector whose origin is the map's (0, 0); heights are the map's z.
   A map without geoReference is placed with georeference.LOCAL_PLACEHOLDER, with a warning.
+- A lane section shorter than `min_lanelet_length_m` is bridged: no lanelets of its own, the
+  lanelets before and after it share their end points.
 - Ids are assigned in road, section, border, sample order: the same map gives the same bytes.
 """
 
@@ -131,15 +133,24 @@ class _Ends:
             self.parent[hi] = lo
 
 
-def _join_ends(sections: list[SectionSamples], odr: OpenDriveMap, tol: float) -> tuple[_Ends, int, list[str]]:
-    """Merge the border ends of every lane joint that lie within `tol` of each other."""
+def _join_ends(
+    sections: list[SectionSamples], odr: OpenDriveMap, cfg: InterchangeConfig
+) -> tuple[_Ends, int, list[str]]:
+    """Merge the border ends of every lane joint that lie within tolerance, and both ends of the
+    borders of every bridged (too short) section."""
+    tol = cfg.join_tolerance_m
     pos = {}
+    ends = _Ends()
     for sec in sections:
+        if _bridged(sec, cfg):
+            for border in sec.xyz:
+                ends.union((sec.road.id, sec.index, False, border), (sec.road.id, sec.index, True, border))
         for border, xyz in sec.xyz.items():
             pos[(sec.road.id, sec.index, False, border)] = xyz[0]
             pos[(sec.road.id, sec.index, True, border)] = xyz[-1]
-    ends, joined, warnings = _Ends(), 0, []
-    for a, b in lane_joints(odr):
+    joints, warnings = lane_joints(odr)
+    joined = 0
+    for a, b in joints:
         for ba, bb in ((inner_border(a[3]), inner_border(b[3])), (a[3], b[3])):
             ka, kb = (*a[:3], ba), (*b[:3], bb)
             if ka not in pos or kb not in pos:
@@ -158,7 +169,7 @@ def build_lanelet_map(odr: OpenDriveMap, cfg: InterchangeConfig) -> tuple[Lanele
     """The Lanelet2 map of an OpenDRIVE map, in the projector's local frame."""
     projector, to_geo, warnings = projector_for(odr)
     sections = sample_sections(odr, cfg.sample_step_m)
-    ends, joined, join_warnings = _join_ends(sections, odr, cfg.join_tolerance_m)
+    ends, joined, join_warnings = _join_ends(sections, odr, cfg)
     ids = count(1)
     shared: dict[LaneEnd, Point3d] = {}
     lmap = LaneletMap()
@@ -173,6 +184,8 @@ def build_lanelet_map(odr: OpenDriveMap, cfg: InterchangeConfig) -> tuple[Lanele
         return out
 
     for sec in sections:
+        if _bridged(sec, cfg):
+            continue
         rid = sec.road.id
         strings: dict[tuple[int, int], LineString3d] = {}
         for border in sorted(sec.xyz, key=lambda b: (abs(b), b)):
@@ -209,6 +222,10 @@ def build_lanelet_map(odr: OpenDriveMap, cfg: InterchangeConfig) -> tuple[Lanele
     summary = Lanelet2Summary(Path(), n_lanelets, n_strings, n_points, joined, to_geo.origin_lat,
                               to_geo.origin_lon, warnings + join_warnings)
     return lmap, projector, summary
+
+
+def _bridged(sec: SectionSamples, cfg: InterchangeConfig) -> bool:
+    return sec.section.s_end - sec.section.s < cfg.min_lanelet_length_m
 
 
 def _lanelet_tags(rtype, cfg: InterchangeConfig, lane_type: str) -> dict[str, str]:

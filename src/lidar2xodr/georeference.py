@@ -1,7 +1,9 @@
 """From a map's local frame to WGS84 longitude/latitude through its OpenDRIVE geoReference (PROJ string).
 
 Only the horizontal part is used: vertical terms (+geoidgrids, +vunits, +geoid_crs) name grid files
-that are not installed offline and are dropped, so heights stay the map's own z.
+that are not installed offline and are dropped, so heights stay the map's own z. A string without
++proj, as CARLA writes it ('+lat_0=49 +lon_0=8'), is read as a transverse Mercator at that point
+(WGS84, scale 1), which is how CARLA itself turns its maps into latitude and longitude.
 """
 
 from __future__ import annotations
@@ -20,8 +22,11 @@ _VERTICAL = ("+geoidgrids", "+vunits", "+geoid_crs")
 
 
 def horizontal(geo: str) -> str:
-    """The PROJ string without its vertical terms."""
-    return " ".join(tok for tok in geo.split() if not tok.startswith(_VERTICAL))
+    """The PROJ string without its vertical terms (a bare lat_0/lon_0 becomes a tmerc there)."""
+    toks = [tok for tok in geo.split() if not tok.startswith(_VERTICAL)]
+    if not any(tok.startswith("+proj=") for tok in toks) and any(tok.startswith("+lat_0=") for tok in toks):
+        toks = ["+proj=tmerc", *toks, "+k=1", "+x_0=0", "+y_0=0", "+ellps=WGS84", "+units=m", "+no_defs"]
+    return " ".join(toks)
 
 
 class ToWgs84:

@@ -79,14 +79,11 @@ def sample_sections(odr: OpenDriveMap, step: float) -> list[SectionSamples]:
     for rid in sorted(odr.roads, key=road_order):
         road = odr.roads[rid]
         for k, ls in enumerate(road.lane_sections):
-            if ls.s_end - ls.s <= _BREAK_EPS_M:
-                continue
-            cuts = {ls.s, ls.s_end}
-            for lane in ls.lanes.values():
-                cuts.update(ls.s + m.s_offset for m in lane.road_marks if 0 < m.s_offset < ls.s_end - ls.s)
-            knots = np.array(sorted(cuts))
-            knots = knots[np.concatenate([[True], np.diff(knots) > _BREAK_EPS_M])]
-            knots[-1] = ls.s_end
+            knots = [ls.s]
+            for cut in sorted({ls.s + m.s_offset for lane in ls.lanes.values() for m in lane.road_marks}):
+                if knots[-1] + _BREAK_EPS_M < cut < ls.s_end - _BREAK_EPS_M:
+                    knots.append(cut)
+            knots.append(ls.s_end)
             parts, breaks = [knots[:1]], [0]
             for a, b in zip(knots[:-1], knots[1:], strict=True):
                 n = max(1, math.ceil((b - a) / step - 1e-9))
@@ -102,9 +99,11 @@ LaneEnd = tuple[str, int, bool, int]
 """(road id, lane section index, at the section's end (else its start), lane id)."""
 
 
-def lane_joints(odr: OpenDriveMap) -> list[tuple[LaneEnd, LaneEnd]]:
-    """Pairs of lane ends that the map's links join, sorted, each pair once."""
+def lane_joints(odr: OpenDriveMap) -> tuple[list[tuple[LaneEnd, LaneEnd]], list[str]]:
+    """Pairs of lane ends that the map's links join (sorted, each pair once) and the junction lane
+    links that name a lane the road does not have there (left out)."""
     pairs: set[tuple[LaneEnd, LaneEnd]] = set()
+    warnings: list[str] = []
 
     def add(a: LaneEnd, b: LaneEnd) -> None:
         if a[3] != 0 and b[3] != 0:
@@ -148,7 +147,10 @@ def lane_joints(odr: OpenDriveMap) -> list[tuple[LaneEnd, LaneEnd]]:
             for a, b in conn.lane_links:
                 if a in ls.lanes and b in cls_.lanes:
                     add((inc.id, k, inc_end, a), (con.id, ck, con_end, b))
-    return sorted(pairs, key=lambda p: [(road_order(e[0]), e[1:]) for e in p])
+                else:
+                    warnings.append(f"junction {jid} connection {conn.id}: laneLink from {a} to {b} names a lane "
+                                    f"that road {inc.id} or {con.id} lacks at the junction; left out")
+    return sorted(pairs, key=lambda p: [(road_order(e[0]), e[1:]) for e in p]), warnings
 
 
 def _junction_end(road: Road, junction_id: str) -> bool | None:
