@@ -501,7 +501,7 @@ def config_cmd(
               highlight=False)
 
 
-@app.command("export-lanelet2")
+@app.command("export-lanelet2", epilog="Example: lidar2xodr export-lanelet2 map.xodr -o map.osm")
 @_clean_errors
 def export_lanelet2(
     map_path: Path = typer.Argument(..., metavar="MAP.xodr", help="The OpenDRIVE map to convert."),
@@ -520,7 +520,7 @@ def export_lanelet2(
         console.print(f"[yellow]warning:[/] {warning}", highlight=False, soft_wrap=True)
 
 
-@app.command("export-geojson")
+@app.command("export-geojson", epilog="Example: lidar2xodr export-geojson map.xodr -o map.geojson")
 @_clean_errors
 def export_geojson(
     map_path: Path = typer.Argument(..., metavar="MAP.xodr", help="The OpenDRIVE map to convert."),

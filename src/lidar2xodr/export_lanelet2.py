@@ -50,9 +50,10 @@ from lidar2xodr.map_lanes import (
     road_type_at,
     sample_sections,
 )
-from lidar2xodr.opendrive import OpenDriveMap, RoadMark
+from lidar2xodr.opendrive import OpenDriveMap, RoadMark, RoadType
 
 _URBAN_TYPES = ("town", "lowSpeed", "pedestrian", "bicycle")
+_NONURBAN_TYPES = ("motorway", "rural")
 _WORDS = {"solid": "solid", "broken": "dashed", "botts": "dashed"}
 
 
@@ -151,17 +152,16 @@ def _join_ends(
     joints, warnings = lane_joints(odr)
     joined = 0
     for a, b in joints:
-        for ba, bb in ((inner_border(a[3]), inner_border(b[3])), (a[3], b[3])):
-            ka, kb = (*a[:3], ba), (*b[:3], bb)
-            if ka not in pos or kb not in pos:
-                continue
-            gap = float(np.linalg.norm(pos[ka] - pos[kb]))
+        pairs = [((*a[:3], ba), (*b[:3], bb)) for ba, bb in ((inner_border(a[3]), inner_border(b[3])), (a[3], b[3]))]
+        pairs = [(ka, kb) for ka, kb in pairs if ka in pos and kb in pos]
+        gaps = [float(np.linalg.norm(pos[ka] - pos[kb])) for ka, kb in pairs]
+        for (ka, kb), gap in zip(pairs, gaps, strict=True):
             if gap <= tol:
                 ends.union(ka, kb)
                 joined += 1
-            else:
-                warnings.append(f"road {a[0]} lane {a[3]} and road {b[0]} lane {b[3]} are linked but their "
-                                f"borders are {gap:.3f} m apart: not joined in the Lanelet2 map")
+        if gaps and max(gaps) > tol:
+            warnings.append(f"road {a[0]} lane {a[3]} and road {b[0]} lane {b[3]} are linked but their borders "
+                            f"are up to {max(gaps):.3f} m apart: not joined in the Lanelet2 map")
     return ends, joined, warnings
 
 
@@ -170,39 +170,65 @@ def build_lanelet_map(odr: OpenDriveMap, cfg: InterchangeConfig) -> tuple[Lanele
     projector, to_geo, warnings = projector_for(odr)
     sections = sample_sections(odr, cfg.sample_step_m)
     ends, joined, join_warnings = _join_ends(sections, odr, cfg)
-    ids = count(1)
-    shared: dict[LaneEnd, Point3d] = {}
-    lmap = LaneletMap()
-    n_points = n_strings = n_lanelets = 0
+    builder = _Builder(projector, to_geo, ends, cfg)
+    for sec in sections:
+        if not _bridged(sec, cfg):
+            builder.add_lanelets(sec, builder.border_strings(sec))
+    if builder.lanelets == 0:
+        raise InputError(odr.path, "the map has no drivable lane to write as a lanelet")
+    summary = Lanelet2Summary(Path(), builder.lanelets, builder.strings, builder.points, joined,
+                              to_geo.origin_lat, to_geo.origin_lon, warnings + join_warnings)
+    return builder.map, projector, summary
 
-    def local(xyz: np.ndarray) -> list[tuple[float, float, float]]:
-        lon, lat = to_geo.lonlat(xyz[:, 0], xyz[:, 1])
+
+class _Builder:
+    """Adds points, border linestrings and lanelets section by section; ids in creation order."""
+
+    def __init__(self, projector: UtmProjector, to_geo: ToWgs84, ends: _Ends, cfg: InterchangeConfig) -> None:
+        self.projector, self.to_geo, self.ends, self.cfg = projector, to_geo, ends, cfg
+        self.map = LaneletMap()
+        self.ids = count(1)
+        self.shared: dict[LaneEnd, Point3d] = {}
+        self.points = self.strings = self.lanelets = 0
+
+    def _local(self, xyz: np.ndarray) -> list[tuple[float, float, float]]:
+        """Map x, y, z to the projector's frame (through WGS84; z stays)."""
+        lon, lat = self.to_geo.lonlat(xyz[:, 0], xyz[:, 1])
         out = []
         for la, lo, z in zip(lat.tolist(), lon.tolist(), xyz[:, 2].tolist(), strict=True):
-            p = projector.forward(GPSPoint(la, lo, z))
+            p = self.projector.forward(GPSPoint(la, lo, z))
             out.append((p.x, p.y, z))
         return out
 
-    for sec in sections:
-        if _bridged(sec, cfg):
-            continue
-        rid = sec.road.id
-        strings: dict[tuple[int, int], LineString3d] = {}
+    def _border_points(self, sec: SectionSamples, border: int) -> list[Point3d]:
+        """The border's points; its two end points are shared with every lane end joined to them."""
+        n = len(sec.s)
+        keys = {0: self.ends.find((sec.road.id, sec.index, False, border)),
+                n - 1: self.ends.find((sec.road.id, sec.index, True, border))}
+        pts = []
+        for i, c in enumerate(self._local(sec.xyz[border])):
+            p = self.shared.get(keys[i]) if i in keys else None
+            if p is None:
+                p = Point3d(next(self.ids), *c)
+                self.points += 1
+                if i in keys:
+                    self.shared[keys[i]] = p
+            pts.append(p)
+        return pts
+
+    def border_strings(self, sec: SectionSamples) -> dict[tuple[int, int], LineString3d]:
+        """One linestring per border and piece, along s, tagged with the piece's road mark."""
+        strings = {}
         for border in sorted(sec.xyz, key=lambda b: (abs(b), b)):
-            pts: list[Point3d | None] = [None] * len(sec.s)
-            for i, at_end in ((0, False), (len(sec.s) - 1, True)):
-                pts[i] = shared.get(ends.find((rid, sec.index, at_end, border)))
-            coords = local(sec.xyz[border])
-            for i, c in enumerate(coords):
-                if pts[i] is None:
-                    pts[i] = Point3d(next(ids), *c)
-                    n_points += 1
-            for i, at_end in ((0, False), (len(sec.s) - 1, True)):
-                shared.setdefault(ends.find((rid, sec.index, at_end, border)), pts[i])
-            for p, piece in enumerate(sec.pieces()):
-                tags = _oriented(mark_tags(sec.mark(border, piece)), border)
-                strings[(border, p)] = LineString3d(next(ids), pts[piece[0]:piece[1] + 1], AttributeMap(tags))
-                n_strings += 1
+            pts = self._border_points(sec, border)
+            for p, (i0, i1) in enumerate(sec.pieces()):
+                tags = _oriented(mark_tags(sec.mark(border, (i0, i1))), border)
+                strings[(border, p)] = LineString3d(next(self.ids), pts[i0:i1 + 1], AttributeMap(tags))
+                self.strings += 1
+        return strings
+
+    def add_lanelets(self, sec: SectionSamples, strings: dict[tuple[int, int], LineString3d]) -> None:
+        """A lanelet per drivable lane and piece, its bounds reversed where the lane runs against s."""
         for p, piece in enumerate(sec.pieces()):
             rtype = road_type_at(sec.road, float(sec.s[piece[0]]))
             for lane_id in sorted(sec.section.lanes, key=lambda b: (abs(b), b)):
@@ -210,31 +236,27 @@ def build_lanelet_map(odr: OpenDriveMap, cfg: InterchangeConfig) -> tuple[Lanele
                 if lane_id == 0 or lane.type not in DRIVABLE_TYPES:
                     continue
                 inner, outer = strings[(inner_border(lane_id), p)], strings[(lane_id, p)]
-                left_t, right_t = (inner, outer) if lane_id < 0 else (outer, inner)
-                forward = along_s(sec.road, lane_id) or lane.type == "bidirectional"
-                left, right = (left_t, right_t) if forward else (right_t.invert(), left_t.invert())
-                attrs = _lanelet_tags(rtype, cfg, lane.type)
-                attrs.update({"odr:road": rid, "odr:section": str(sec.index), "odr:lane": str(lane_id)})
-                lmap.add(Lanelet(next(ids), left, right, AttributeMap(attrs)))
-                n_lanelets += 1
-    if n_lanelets == 0:
-        raise InputError(odr.path, "the map has no drivable lane to write as a lanelet")
-    summary = Lanelet2Summary(Path(), n_lanelets, n_strings, n_points, joined, to_geo.origin_lat,
-                              to_geo.origin_lon, warnings + join_warnings)
-    return lmap, projector, summary
+                left, right = (inner, outer) if lane_id < 0 else (outer, inner)
+                if not (along_s(sec.road, lane_id) or lane.type == "bidirectional"):
+                    left, right = right.invert(), left.invert()
+                tags = _lanelet_tags(rtype, self.cfg, lane.type)
+                tags.update({"odr:road": sec.road.id, "odr:section": str(sec.index), "odr:lane": str(lane_id)})
+                self.map.add(Lanelet(next(self.ids), left, right, AttributeMap(tags)))
+                self.lanelets += 1
 
 
 def _bridged(sec: SectionSamples, cfg: InterchangeConfig) -> bool:
     return sec.section.s_end - sec.section.s < cfg.min_lanelet_length_m
 
 
-def _lanelet_tags(rtype, cfg: InterchangeConfig, lane_type: str) -> dict[str, str]:
+def _lanelet_tags(rtype: RoadType | None, cfg: InterchangeConfig, lane_type: str) -> dict[str, str]:
+    """Lanelet tags from the OpenDRIVE road type valid there and the lane's type."""
     kind = rtype.type if rtype is not None else "unknown"
-    urban = kind.startswith(_URBAN_TYPES)
+    location = "urban" if kind.startswith(_URBAN_TYPES) else "nonurban" if kind in _NONURBAN_TYPES else None
     tags = {
         "type": "lanelet",
         "subtype": "highway" if kind == "motorway" else "road",
-        "location": "urban" if urban else ("nonurban" if rtype is not None else cfg.default_location),
+        "location": location or cfg.default_location,
         "one_way": "no" if lane_type == "bidirectional" else "yes",
     }
     if rtype is not None and rtype.speed_max_mps is not None:
