@@ -306,6 +306,10 @@ def test_every_shared_map_routes_as_linked(path: Path, tmp_path: Path) -> None:
     odr, lmap, graph, frame, summary = _routes_as_linked(path, tmp_path)
     _lane_changes(odr, lmap, graph, frame)
     assert not [w for w in summary.warnings if "not joined" in w]
+    from lidar2xodr.lanelet2_reader import run_lanelet2
+
+    reader = run_lanelet2(path)
+    assert not reader["errors"] and reader["missing"] == 0, reader
 
 
 def test_esmini_highway_exit(shared_data: Path, tmp_path: Path) -> None:
@@ -360,3 +364,19 @@ def test_build_writes_lanelet2_and_geojson_next_to_the_map(tmp_path: Path) -> No
                 if lid and np.abs(road.border_t(s, lid) - road.border_t(s, inner)).max() > 1e-3:
                     expected.add((rid, k, lid))
     assert lanes == expected  # every lane with an area, nothing else
+
+
+def test_lanelet2_reader_finds_what_routes_and_what_does_not(maps, tmp_path: Path) -> None:
+    """run_lanelet2 (a reader for `check`): clean on a sound map; a linked road moved 1 m away is unrouted."""
+    from lidar2xodr.lanelet2_reader import run_lanelet2
+
+    good = run_lanelet2(maps["diverge-classic"])
+    assert good["ok"] and good["links"] > 0 and good["missing"] == 0 and good["lanelets"] > 0, good
+    moved = tmp_path / "moved.xodr"
+    moved.write_text(maps["two_way"].read_text().replace('x="100.0" y="0"', 'x="101.0" y="0"'))
+    bad = run_lanelet2(moved)
+    assert not bad["ok"] and bad["missing"] == 6, bad  # both ends of road 2: three lanes each
+    assert any("1.000 m apart" in w for w in bad["warnings"])
+    broken = tmp_path / "broken.xodr"
+    broken.write_text("<OpenDRIVE/>")
+    assert run_lanelet2(broken)["errors"] and not run_lanelet2(broken)["ok"]

@@ -159,3 +159,30 @@ def _junction_end(road: Road, junction_id: str) -> bool | None:
         if link is not None and link.element_type == "junction" and link.element_id == junction_id:
             return at_end
     return None
+
+
+LaneKey = tuple[str, int, int]
+"""(road id, lane section index, lane id)."""
+
+
+def travel_successors(odr: OpenDriveMap, kept: set[LaneKey] | None = None) -> set[tuple[LaneKey, LaneKey]]:
+    """Lane-to-lane successors in travel direction from the map's links, between drivable lanes.
+
+    With `kept`, lanes outside it (too short to keep) are contracted: a -> t -> b becomes a -> b.
+    """
+    edges: set[tuple[LaneKey, LaneKey]] = set()
+    joints, _ = lane_joints(odr)
+    for a, b in joints:
+        ends = []
+        for rid, k, at_end, lid in (a, b):
+            lane = odr.roads[rid].lane_sections[k].lanes[lid]
+            ends.append(((rid, k, lid), along_s(odr.roads[rid], lid) == at_end, lane.type in DRIVABLE_TYPES))
+        (ka, a_leaves, a_ok), (kb, b_leaves, b_ok) = ends
+        if a_ok and b_ok and a_leaves != b_leaves:
+            edges.add((ka, kb) if a_leaves else (kb, ka))
+    if kept is not None:
+        for t in sorted({k for e in edges for k in e} - kept, key=lambda k: (road_order(k[0]), k[1:])):
+            into = {a for a, b in edges if b == t and a != t}
+            out = {b for a, b in edges if a == t and b != t}
+            edges = {e for e in edges if t not in e} | {(a, b) for a in into for b in out}
+    return edges
