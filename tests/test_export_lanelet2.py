@@ -295,8 +295,11 @@ def test_demo_road_routes_through_its_added_lane(tmp_path: Path) -> None:
     odr, lmap, graph, frame, summary = _routes_as_linked(write_demo_road(tmp_path / "demo.xodr"), tmp_path)
     assert (round(summary.origin_lat, 6), round(summary.origin_lon, 6)) == (48.78, 9.18)
     assert _lane_changes(odr, lmap, graph, frame) > 0
-    highway = {ll.attributes["subtype"] for ll in lmap.laneletLayer}
-    assert highway == {"highway" if odr.roads["1"].types and odr.roads["1"].types[0].type == "motorway" else "road"}
+    # no road <type> in the demo road: plain road, the configured default location, no speed limit
+    assert not odr.roads["1"].types
+    tags = {(ll.attributes["subtype"], ll.attributes["location"], "speed_limit" in ll.attributes)
+            for ll in lmap.laneletLayer}
+    assert tags == {("road", InterchangeConfig().default_location, False)}
 
 
 @pytest.mark.slow
