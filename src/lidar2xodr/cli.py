@@ -504,39 +504,40 @@ def config_cmd(
 @app.command("export-lanelet2", epilog="Example: lidar2xodr export-lanelet2 map.xodr -o map.osm")
 @_clean_errors
 def export_lanelet2(
-    map_path: Path = typer.Argument(..., metavar="MAP.xodr", help="The OpenDRIVE map to convert."),
-    output: Path = typer.Option(..., "--output", "-o", help="The Lanelet2 map to write (.osm)."),
+    map_path: Path = _arg(metavar="MAP.xodr", help="The OpenDRIVE map to convert."),
+    output: Path = _opt(..., "--output", "-o", help="The Lanelet2 map to write (.osm)."),
     config: Path | None = ConfigOpt,
 ) -> None:
     """Lanelet2 (.osm) for Autoware: lanelets with shared, mark-tagged bounds, routable like the lane links."""
     from lidar2xodr.config import Config
     from lidar2xodr.export_lanelet2 import export_lanelet2 as run_export
 
+    _outputs([output])
     s = run_export(map_path, output, Config.load(config).interchange)
     out.print(f"wrote {output}: {s.lanelets} lanelets, {s.linestrings} linestrings, {s.points:,} points, "
               f"{s.joined_ends} linked lane ends joined; projector origin {s.origin_lat:.7f} N "
-              f"{s.origin_lon:.7f} E", highlight=False)
+              f"{s.origin_lon:.7f} E", highlight=False, markup=False)
     for warning in s.warnings:
-        console.print(f"[yellow]warning:[/] {warning}", highlight=False, soft_wrap=True)
+        warn(warning)
 
 
 @app.command("export-geojson", epilog="Example: lidar2xodr export-geojson map.xodr -o map.geojson")
 @_clean_errors
 def export_geojson(
-    map_path: Path = typer.Argument(..., metavar="MAP.xodr", help="The OpenDRIVE map to convert."),
-    output: Path = typer.Option(..., "--output", "-o", help="The GeoJSON file to write (WGS84)."),
+    map_path: Path = _arg(metavar="MAP.xodr", help="The OpenDRIVE map to convert."),
+    output: Path = _opt(..., "--output", "-o", help="The GeoJSON file to write (WGS84)."),
     config: Path | None = ConfigOpt,
 ) -> None:
     """GeoJSON (RFC 7946, WGS84) of the lanes, lane borders and reference lines, for GIS tools."""
     from lidar2xodr.config import Config
     from lidar2xodr.export_geojson import export_geojson as run_export
 
+    _outputs([output])
     s = run_export(map_path, output, Config.load(config).interchange)
     out.print(f"wrote {output}: {s.reference_lines} reference lines, {s.lanes} lanes, {s.boundaries} lane "
-              f"borders", highlight=False)
+              f"borders", highlight=False, markup=False)
     for warning in s.warnings:
-        console.print(f"[yellow]warning:[/] {warning}", highlight=False, soft_wrap=True)
-
+        warn(warning)
 
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(app())
