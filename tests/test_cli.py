@@ -13,7 +13,8 @@ from lidar2xodr.cli import Format, Sensor, Traffic, app
 from lidar2xodr.config import Config
 
 runner = CliRunner(mix_stderr=False)
-COMMANDS = ("build", "extract", "lanes", "export", "scenario", "simulate", "compare", "check", "demo", "config")
+COMMANDS = ("build", "extract", "lanes", "export", "scenario", "simulate", "compare", "check", "demo", "config",
+            "export-lanelet2", "export-geojson")
 
 # each command with missing or wrong arguments, and the word its usage error must name
 USAGE_ERRORS = [
@@ -44,6 +45,10 @@ USAGE_ERRORS = [
     (["demo", "--length-m", "long"], "--length-m"),
     (["demo", "extra"], "extra"),
     (["config"], "--show"),
+    (["export-lanelet2"], "MAP.xodr"),
+    (["export-lanelet2", "m.xodr"], "--output"),
+    (["export-geojson"], "MAP.xodr"),
+    (["export-geojson", "m.xodr"], "--output"),
     (["nonsense"], "nonsense"),
 ]
 

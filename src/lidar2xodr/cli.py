@@ -263,12 +263,14 @@ def build(
     pose_topic: str | None = _opt(None, "--pose-topic", help="Pose topic of a bag (when it has several)."),
     intensity_scale: float | None = _opt(None, "--intensity-scale",
                                          help="Raw intensity that means 100 % (folders, bags)."),
+    lanelet2: Path | None = _opt(None, "--lanelet2", help="Also write the map as Lanelet2 (.osm)."),
+    geojson: Path | None = _opt(None, "--geojson", help="Also write the map as GeoJSON (WGS84)."),
 ) -> None:
     """The whole pipeline: extract markings, build lanes, export a checked OpenDRIVE map."""
     from lidar2xodr.config import Config
     from lidar2xodr.pipeline import BuildPipeline, prepare_outputs
 
-    prepare_outputs([output, scenario], [(report, "report"), (keep_intermediate, "intermediate")])
+    prepare_outputs([output, scenario, lanelet2, geojson], [(report, "report"), (keep_intermediate, "intermediate")])
     cfg = Config.load(config)
     if odometry:
         cfg = cfg.model_copy(update={"extraction": cfg.extraction.model_copy(update={"odometry": odometry.value})})
@@ -278,6 +280,7 @@ def build(
         drive, output, cfg, data_format=data_format.value if data_format else None, report_dir=report,
         scenario=scenario, keep_intermediate=keep_intermediate, allow_invalid=allow_invalid, reference=reference,
         console=console, topic=topic, pose_topic=pose_topic, intensity_scale=intensity_scale,
+        lanelet2=lanelet2, geojson=geojson,
     ).run()
     from lidar2xodr.pipeline import print_summary
 
@@ -514,6 +517,44 @@ def config_cmd(
     out.print(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False), end="", markup=False,
               highlight=False)
 
+
+@app.command("export-lanelet2", epilog="Example: lidar2xodr export-lanelet2 map.xodr -o map.osm")
+@_clean_errors
+def export_lanelet2(
+    map_path: Path = _arg(metavar="MAP.xodr", help="The OpenDRIVE map to convert."),
+    output: Path = _opt(..., "--output", "-o", help="The Lanelet2 map to write (.osm)."),
+    config: Path | None = ConfigOpt,
+) -> None:
+    """Lanelet2 (.osm) for Autoware: lanelets with shared, mark-tagged bounds, routable like the lane links."""
+    from lidar2xodr.config import Config
+    from lidar2xodr.export_lanelet2 import export_lanelet2 as run_export
+
+    _outputs([output])
+    s = run_export(map_path, output, Config.load(config).interchange)
+    out.print(f"wrote {output}: {s.lanelets} lanelets, {s.linestrings} linestrings, {s.points:,} points, "
+              f"{s.joined_ends} linked lane ends joined; projector origin {s.origin_lat:.7f} N "
+              f"{s.origin_lon:.7f} E", highlight=False, markup=False)
+    for warning in s.warnings:
+        warn(warning)
+
+
+@app.command("export-geojson", epilog="Example: lidar2xodr export-geojson map.xodr -o map.geojson")
+@_clean_errors
+def export_geojson(
+    map_path: Path = _arg(metavar="MAP.xodr", help="The OpenDRIVE map to convert."),
+    output: Path = _opt(..., "--output", "-o", help="The GeoJSON file to write (WGS84)."),
+    config: Path | None = ConfigOpt,
+) -> None:
+    """GeoJSON (RFC 7946, WGS84) of the lanes, lane borders and reference lines, for GIS tools."""
+    from lidar2xodr.config import Config
+    from lidar2xodr.export_geojson import export_geojson as run_export
+
+    _outputs([output])
+    s = run_export(map_path, output, Config.load(config).interchange)
+    out.print(f"wrote {output}: {s.reference_lines} reference lines, {s.lanes} lanes, {s.boundaries} lane "
+              f"borders", highlight=False, markup=False)
+    for warning in s.warnings:
+        warn(warning)
 
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(app())

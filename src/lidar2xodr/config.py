@@ -417,6 +417,24 @@ class CheckConfig(_Section):
     width_step_m: float = Field(0.5, gt=0, description="ours: lane widths are sampled this often along each section")
 
 
+class InterchangeConfig(_Section):
+    """Lanelet2 and GeoJSON copies of an OpenDRIVE map (export_lanelet2.py, export_geojson.py)."""
+
+    sample_step_m: float = Field(1.0, gt=0, description="ours: lane borders are sampled at most this far apart "
+                                 "along the road; on a 250 m radius a 1 m chord is 0.5 mm off the arc")
+    join_tolerance_m: float = Field(0.1, gt=0, description="ours: the ends of two linked lanes this close become "
+                                    "one point, so Lanelet2 routes from one to the other; farther apart they stay "
+                                    "apart with a warning (a gap in the map, not ours to close)")
+    min_lanelet_length_m: float = Field(0.01, ge=0, description="ours: a lane section shorter than this (CARLA's "
+                                        "Town04 has some of 1e-7 m) gets no lanelets: the lanelets before and after "
+                                        "it meet; Lanelet2's .osm keeps ~1 um, so shorter ones lose their direction")
+    default_location: Literal["urban", "nonurban"] = Field(
+        "nonurban", description="ours: Lanelet2 location of a road whose OpenDRIVE <type> does not say (town* and "
+        "lowSpeed types are urban, the rest nonurban)")
+    geojson_decimals: int = Field(8, ge=7, le=12, description="ours: decimals of GeoJSON longitudes and latitudes; "
+                                  "8 is about 1 mm, RFC 7946's 6 (10 cm) would move lane borders visibly")
+
+
 class Config(_Section):
     extraction: ExtractionConfig = ExtractionConfig()
     markings: MarkingsConfig = MarkingsConfig()
@@ -426,6 +444,7 @@ class Config(_Section):
     scenario: ScenarioConfig = ScenarioConfig()
     report: ReportConfig = ReportConfig()
     check: CheckConfig = CheckConfig()
+    interchange: InterchangeConfig = InterchangeConfig()
 
     @classmethod
     def load(cls, path: str | Path | None) -> Config:

@@ -308,6 +308,18 @@ class LaneSection:
 
 
 @dataclass
+class RoadType:
+    """A <type> record of a road: its kind (motorway, rural, town, ...) and speed limit from s on."""
+
+    s: float
+    type: str
+    speed_max_mps: float | None  # None: no <speed> or 'no limit' / 'undefined'
+
+
+_SPEED_UNITS = {"m/s": 1.0, "km/h": 1 / 3.6, "mph": 0.44704}
+
+
+@dataclass
 class Link:
     element_type: str  # "road" | "junction"
     element_id: str
@@ -332,6 +344,7 @@ class Road:
     superelevation_profile: CubicRecords = field(default_factory=CubicRecords.empty)
     lane_offsets: CubicRecords = field(default_factory=CubicRecords.empty)
     rule: str = "RHT"
+    types: list[RoadType] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self._geo_starts = np.array([g.s for g in self.geometries])
@@ -683,7 +696,18 @@ class _Parser:
             ),
             lane_offsets=self.cubic(lanes.findall("laneOffset"), "s", where, "laneOffset"),
             rule=el.get("rule", "RHT"),
+            types=[self.road_type(t, where) for t in el.iterfind("type")],
         )
+
+    def road_type(self, el: etree._Element, where: str) -> RoadType:
+        speed = el.find("speed")
+        limit = None
+        if speed is not None and speed.get("max") not in (None, "no limit", "undefined"):
+            unit = speed.get("unit", "m/s")
+            if unit not in _SPEED_UNITS:
+                raise self.fail(where, f"<speed> unit={unit!r} is none of {', '.join(_SPEED_UNITS)}")
+            limit = self.num(speed, "max", where) * _SPEED_UNITS[unit]
+        return RoadType(self.num(el, "s", where, 0.0), el.get("type", "unknown"), limit)
 
     def plan_view(self, road: etree._Element, where: str) -> list[Geometry]:
         pv = road.find("planView")

@@ -93,6 +93,8 @@ class BuildPipeline:
         topic: str | None = None,
         pose_topic: str | None = None,
         intensity_scale: float | None = None,
+        lanelet2: Path | None = None,
+        geojson: Path | None = None,
     ) -> None:
         self.drive = Path(drive)
         self.out = Path(out)
@@ -103,6 +105,8 @@ class BuildPipeline:
         self.keep = keep_intermediate
         self.allow_invalid = allow_invalid
         self.reference = reference
+        self.lanelet2 = lanelet2
+        self.geojson = geojson
         self.console = console or Console(stderr=True)
         self.reader_options = dict(topic=topic, pose_topic=pose_topic, intensity_scale=intensity_scale)
         self.timings: dict[str, float] = {}
@@ -163,7 +167,8 @@ class BuildPipeline:
 
     def run(self) -> BuildResult:
         """The whole build; its outputs appear together at the end, or none of them."""
-        prepare_outputs([self.out, self.scenario], [(self.report_dir, "report"), (self.keep, "intermediate")])
+        prepare_outputs([self.out, self.scenario, self.lanelet2, self.geojson],
+                        [(self.report_dir, "report"), (self.keep, "intermediate")])
         with staged_outputs():
             return self._run()
 
@@ -191,6 +196,7 @@ class BuildPipeline:
             "scans": int(len(cloud.planes.times)),
             "export": summary.__dict__ if hasattr(summary, "__dict__") else str(summary),
         }
+        result.warnings.extend(self._interchange(result.summary))
         scenario_info = None
         if self.scenario:
             with self._stage("scenario"):
@@ -218,6 +224,25 @@ class BuildPipeline:
                                                   reference=self.reference, warnings=result.warnings,
                                                   config=self.config, final_path=self.out)
         return result
+
+    def _interchange(self, summary: dict[str, Any]) -> list[str]:
+        """Lanelet2 and GeoJSON copies of the written map (--lanelet2, --geojson); their warnings."""
+        warnings: list[str] = []
+        if self.lanelet2:
+            from lidar2xodr.export_lanelet2 import export_lanelet2
+
+            with self._stage("lanelet2"):
+                ll = export_lanelet2(staged(self.out), self.lanelet2, self.config.interchange)
+            summary["lanelet2"] = {"path": str(ll.path), "lanelets": ll.lanelets, "joined_ends": ll.joined_ends}
+            warnings += ll.warnings
+        if self.geojson:
+            from lidar2xodr.export_geojson import export_geojson
+
+            with self._stage("geojson"):
+                gj = export_geojson(staged(self.out), self.geojson, self.config.interchange)
+            summary["geojson"] = {"path": str(gj.path), "lanes": gj.lanes, "boundaries": gj.boundaries}
+            warnings += gj.warnings
+        return warnings
 
     def _scenario(self, cloud: MarkingCloud) -> dict[str, Any]:
         """Write the OpenSCENARIO on the map just written; return its summary and the tracks for the report."""
