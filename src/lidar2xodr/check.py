@@ -29,7 +29,9 @@ Three parts:
   printed lines are warnings, exceptions errors; `max_reference_dev_m` is how far its reference
   points lie from ours. `carla`: CARLA's own parser (PyPI carla, offline), the map loaded, a
   waypoint on every driving lane, a `wp.next()` walk along every lane through sections and links,
-  and its topology against the map's road links (quality/carla_reader.py). pyxodr and CARLA run
+  and its topology against the map's road links (quality/carla_reader.py). `lanelet2`: the map
+  exported to Lanelet2 and loaded back, `checkValidity` clean, every lane link in travel direction
+  a `following` of lanelet2's routing graph (lanelet2_reader.py). pyxodr, CARLA and lanelet2 run
   in child processes: a reader that crashes (CARLA segfaults on a lane link to a missing lane) is
   an error of that reader, never of `check`. Reported, never part of the verdict: a reader's
   limits are not the file's fault (SUMO 1.28 warns about a lane that appears at a section change
@@ -369,13 +371,14 @@ def check_file(path: Path, readers: bool = True, cfg: CheckConfig | None = None)
     venv = find_qc_venv()
     result: dict[str, Any] = {"file": str(path), "kind": suffix[1:]}
     reasons = []
-    with ThreadPoolExecutor(max_workers=4) as pool:
+    with ThreadPoolExecutor(max_workers=5) as pool:
         asam = pool.submit(run_asam_checker, path, venv)
         jobs: dict[str, Future] = {}
         if suffix == ".xodr" and readers:
             jobs = {"netconvert": pool.submit(run_netconvert, path),
                     "pyxodr": pool.submit(run_in_subprocess, "pyxodr", path),
-                    "carla": pool.submit(run_in_subprocess, "carla", path)}
+                    "carla": pool.submit(run_in_subprocess, "carla", path),
+                    "lanelet2": pool.submit(run_in_subprocess, "lanelet2", path)}
         if suffix == ".xodr":
             from lidar2xodr.opendrive import OpenDriveMap
 

@@ -208,7 +208,7 @@ def run_pyxodr(path: Path, odr: Any | None = None) -> dict[str, Any]:
 
 
 def run_in_subprocess(reader: str, path: Path, timeout_s: float = READER_TIMEOUT_S) -> dict[str, Any]:
-    """Run a Python reader (`pyxodr` or `carla`) on the map in a child process and return its result.
+    """Run a Python reader (`pyxodr`, `carla` or `lanelet2`) on the map in a child process and return its result.
 
     A child of its own keeps a reader that aborts or hangs (CARLA's parser calls abort() on some
     maps) from taking `check` down, lets the readers run side by side, and keeps pyxodr's printing
@@ -217,7 +217,7 @@ def run_in_subprocess(reader: str, path: Path, timeout_s: float = READER_TIMEOUT
     src = str(Path(__file__).resolve().parents[2])
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (src, os.environ.get("PYTHONPATH")) if p))
     cmd = [sys.executable, "-m", "lidar2xodr.quality.worker", reader, str(Path(path).resolve())]
-    names = {"pyxodr": "pyxodr", "carla": "CARLA"}
+    names = {"pyxodr": "pyxodr", "carla": "CARLA", "lanelet2": "lanelet2"}
     try:
         version = importlib.metadata.version(reader)
     except importlib.metadata.PackageNotFoundError:

@@ -1,4 +1,4 @@
-"""Child process of `check`: `python -m lidar2xodr.quality.worker pyxodr|carla MAP` prints one JSON result line."""
+"""Child process of `check`: `python -m lidar2xodr.quality.worker pyxodr|carla|lanelet2 MAP` prints one JSON line."""
 
 from __future__ import annotations
 
@@ -22,6 +22,10 @@ def main(argv: list[str]) -> int:
         from lidar2xodr.quality.carla_reader import run_carla
 
         result = run_carla(path, odr)
+    elif reader == "lanelet2":
+        from lidar2xodr.lanelet2_reader import run_lanelet2
+
+        result = run_lanelet2(path)
     else:
         result = run_pyxodr(path, odr)
     sys.stdout.write("\n" + RESULT_PREFIX + json.dumps(result) + "\n")
