@@ -230,15 +230,7 @@ def atomic_path(target: str | Path, suffix: str | None = None) -> Iterator[Path]
     target = check_output_file(target)
     name = target.name if not suffix or target.name.endswith(suffix) else target.name + suffix
     staged_set = _CURRENT.get()
-    created: list[Path] = []
-    try:
-        created = _make_parents(target.parent)
-        if staged_set is not None:
-            staged_set.created.extend(created)
-        tmp_dir = Path(tempfile.mkdtemp(prefix=f"{temp_prefix()}{target.name}.", dir=target.parent))
-    except OSError as exc:
-        _remove_empty(created)
-        raise OutputError(target, f"cannot write: {_problem(exc)}") from None
+    tmp_dir, created = _staging_dir(target, staged_set)
     tmp_path = tmp_dir / name
     keep = False
     try:
@@ -303,6 +295,19 @@ def _commit_dir(tmp: Path, target: Path, kind: str) -> None:
         raise OutputError(target, f"cannot write: {_problem(exc)}") from None
 
 
+
+def _staging_dir(target: Path, staged_set: _Staged | None) -> tuple[Path, list[Path]]:
+    """A hidden temporary folder of ours beside `target` (its missing parents made and recorded)."""
+    created: list[Path] = []
+    try:
+        created = _make_parents(target.parent)
+        if staged_set is not None:
+            staged_set.created.extend(created)
+        return Path(tempfile.mkdtemp(prefix=f"{temp_prefix()}{target.name}.", dir=target.parent)), created
+    except OSError as exc:
+        _remove_empty(created)
+        raise OutputError(target, f"cannot write: {_problem(exc)}") from None
+
 @contextlib.contextmanager
 def atomic_dir(target: str | Path, kind: str = "report") -> Iterator[Path]:
     """Yield a temporary folder next to `target`; its files replace `target`'s only on success.
@@ -311,15 +316,7 @@ def atomic_dir(target: str | Path, kind: str = "report") -> Iterator[Path]:
     """
     target = check_output_dir(target, kind)
     staged_set = _CURRENT.get()
-    created: list[Path] = []
-    try:
-        created = _make_parents(target.parent)
-        if staged_set is not None:
-            staged_set.created.extend(created)
-        tmp = Path(tempfile.mkdtemp(prefix=f"{temp_prefix()}{target.name}.", dir=target.parent))
-    except OSError as exc:
-        _remove_empty(created)
-        raise OutputError(target, f"cannot write: {_problem(exc)}") from None
+    tmp, created = _staging_dir(target, staged_set)
     keep = False
     try:
         try:
