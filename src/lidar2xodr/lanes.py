@@ -90,6 +90,7 @@ FORMAT = "lidar2xodr.lanes/1"
 _CHUNK = 20000
 _ABSENT_RUN = 20  # stations (m) a line must be seen to be absent before it is no longer carried
 _ALONG_SLOPE = 0.1  # lines joined across a gap run along the road there (within ~6 deg of the frame)
+_LINE_FRAME_GAIN = 1.5  # the longest line replaces the first frame only when this much more paint runs along it
 _HOP_RADIUS_M = 500.0  # tightest curve a step beside another is allowed to follow (motorway minimum ~ 700 m)
 
 
@@ -603,19 +604,10 @@ def _line_frame(pieces: list[Candidate], cfg: LanesConfig) -> Frame | None:
     different far lines (a verge's clutter on one side, the other carriageway on the other: on the
     130 m aiMotive drive the middles fall into two groups 5 m apart and the lanes stage found no
     road). `build_lane_model` takes this axis instead only where the first frame is evidently poor: the
-    line spans the road (90 % of the first frame's length) and the first lane structure along it holds
-    two lines a lane apart over `min_section_length_m` more road than along the first frame
-    (`_lane_road_m`). On the aiMotive drive: 137 m against 0-64 m, with and without the odometry's road
-    fit and under random 1 % point drops. The earlier rule, 1.5 times as much paint running within 3 deg
-    of the axis, was a knife edge there: that ratio scattered from 1.1 to 4.9 under 1 % point drops and
-    with two stray dashes 93 m beyond the paint, because the bent first frame runs along the lines only
-    in places. An earlier measurement had the line axis, an edge's raw cluster centres, make
-    simple_highway worse (boundaries 0.047 -> 0.264 m), so it is taken only where it explains a
-    section more road. Measured with this rule (1 km drives, seed 1): the first frame lost the drive's
-    first 90-160 m on AB_RQ31_Straight and simple_highway (simple_highway: 853 m of two lines against
-    1004 m along the line); the maps are now that much longer at the same accuracy (boundaries 0.061 ->
-    0.062, 0.0375 -> 0.036 m; highway_exit 0.0857 -> 0.0852 m). Costs one first pass per axis (~0.5 s
-    of CPU on 1 km).
+    line spans the road (90 % of the first frame's length) and `_LINE_FRAME_GAIN` times as much marking
+    length runs along it (`_parallel_length`; measured: aiMotive 1.26 and 1.86 with two extractions,
+    the first frame working in the first case only; simple_highway 1.01, where the line axis, an edge's
+    raw cluster centres, made the map worse: boundaries 0.047 -> 0.264 m).
     """
     best, length = None, 0.0
     for c in pieces:
@@ -631,23 +623,16 @@ def _line_frame(pieces: list[Candidate], cfg: LanesConfig) -> Frame | None:
     return Frame(np.vstack([best[0] + ext[::-1] * head_dir, best, best[-1] + ext * tail_dir]), cfg.station_step_m)
 
 
-def _lane_road_m(frame: Frame, xy: np.ndarray, label: np.ndarray, n_sl: int, ego: np.ndarray | None,
-                 w_lane: float, lam: float, cfg: LanesConfig) -> float:
-    """Metres of road along `frame` where the first lane structure holds two lines a lane apart:
-    what a candidate road axis explains of the markings (the first pass of `build_lane_model`)."""
-    step = cfg.station_step_m
-    k_pt, t_pt, inside, s_pt = _stations(frame, xy)
-    fit = _fit_boundaries(k_pt, t_pt, label, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)))
-    crossing = _crossing_points(fit.t, label, k_pt, t_pt, cfg.assign_distance_m)
-    fit.t[np.isfinite(fit.t).sum(axis=1) * step < cfg.min_section_length_m] = np.nan
-    active = np.flatnonzero(np.isfinite(fit.t).any(axis=1))
-    if len(active) < 2:
-        return 0.0
-    solid = np.array([_mark_pattern(s_pt[(label == b) & inside], cfg)[0] == "solid" for b in active], dtype=bool)
-    seen = _observed(k_pt[inside], t_pt[inside], ~crossing[inside], len(frame.s))
-    sub = _lane_structure(fit.t[active], fit.support[active], solid, _ego_offsets(frame, ego), step, w_lane,
-                          cfg, seen)
-    return float(np.sum(sub.on.sum(axis=0) >= 2)) * step
+def _parallel_length(frame: Frame, segs: Segments, cfg: LanesConfig) -> float:
+    """Length of the segments that run along the frame (within 3 deg, at most `max_normal_length_m` off it):
+    how well a candidate road axis follows the markings."""
+    mid = 0.5 * (segs.p0[:, :2] + segs.p1[:, :2])
+    s, t, inside = frame.project(mid)
+    k = np.clip(np.rint(s / (frame.s[1] - frame.s[0])).astype(np.int64), 0, len(frame.s) - 1)
+    d = segs.p1[:, :2] - segs.p0[:, :2]
+    length = np.linalg.norm(d, axis=1)
+    along = np.abs(np.einsum("ij,ij->i", d, frame.tangent[k])) >= math.cos(math.radians(3.0)) * length
+    return float(np.sum(length[inside & along & (np.abs(t) <= cfg.max_normal_length_m)]))
 
 
 def _first_frame(segs: Segments, lookups: Lookups, cfg: LanesConfig) -> Frame:
@@ -1460,17 +1445,15 @@ def build_lane_model(
         )
     superline = global_lookup(len(pieces), lookups, w_lane, cfg)
     frame = _first_frame(segs, lookups, cfg)
+    along_line = _line_frame(pieces, cfg)
+    if (along_line is not None and along_line.length >= 0.9 * frame.length
+            and _parallel_length(along_line, segs, cfg) > _LINE_FRAME_GAIN * _parallel_length(frame, segs, cfg)):
+        frame = along_line
     warnings: list[str] = []
     label = _label_by_candidates(xyz[:, :2], pieces, superline, cfg)
     n_sl = int(superline.max()) + 1
     ego = cloud.trajectory.positions[:, :2] if len(cloud.trajectory) else None
     lam = _lam(cfg.boundary_smoothing_m, step)
-    along_line = _line_frame(pieces, cfg)
-    if along_line is not None and along_line.length >= 0.9 * frame.length:
-        lanes_first, lanes_line = (_lane_road_m(f, xyz[:, :2], label, n_sl, ego, w_lane, lam, cfg)
-                                   for f in (frame, along_line))
-        if lanes_line > lanes_first + cfg.min_section_length_m:
-            frame = along_line
     structure = fit = None
     if _travel_sign(frame, ego) < 0:
         frame = Frame(frame.xy[::-1], step)
