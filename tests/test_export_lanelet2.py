@@ -88,8 +88,8 @@ def maps(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     export_opendrive(_road(), None, ExportConfig(fold_appearing_lanes=False), out / "sections.xodr")
     res["sections"] = out / "sections.xodr"
     for name, make in (("diverge", _diverge), ("merge", _merge)):
-        for key, cfg in ((f"{name}-classic", ExportConfig()), (f"{name}-direct", ExportConfig(junction_type="direct"))):
-            export_network(make()[0], None, cfg, out / f"{key}.xodr")
+        for key, direct in ((f"{name}-classic", False), (f"{name}-direct", True)):  # direct: the exporter's first form
+            export_network(make()[0], None, ExportConfig(), out / f"{key}.xodr", _direct=direct)
             res[key] = out / f"{key}.xodr"
     return res
 
