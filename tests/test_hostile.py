@@ -524,6 +524,16 @@ def test_stale_temp_of_a_live_process_is_kept(tmp_path: Path, assets: dict[str, 
     assert live.exists() and not dead.exists()
 
 
+def test_a_users_folder_named_like_ours_is_never_cleaned(tmp_path: Path, assets: dict[str, Path]) -> None:
+    """Only hidden names of ours count beside the outputs: `lidar2xodr-999999-runs/` is the user's."""
+    users = tmp_path / f"lidar2xodr-{2**22 + 12345}-my-runs"
+    users.mkdir()
+    (users / "notes.txt").write_text("mine")
+    res = runner.invoke(app, ["compare", str(assets["map"]), str(assets["map"]), "--json", str(tmp_path / "m.json")])
+    assert res.exit_code == 0
+    assert (users / "notes.txt").read_text() == "mine"
+
+
 def test_a_report_from_before_markers_is_updated_file_by_file(tmp_path: Path) -> None:
     """An unmarked report of ours (older version) is ours: only our files are replaced, none is deleted."""
     from lidar2xodr.fileio import atomic_dir

@@ -34,7 +34,8 @@ def _umask() -> int:
 
 
 _UMASK = _umask()
-_STALE = re.compile(r"^\.?lidar2xodr-(?:[a-z]+-)?(\d+)-")
+_STALE_HIDDEN = re.compile(r"^\.lidar2xodr-(?:[a-z]+-)?(\d+)-")
+_STALE_SYSTEM = re.compile(r"^lidar2xodr-(?:[a-z]+-)?(\d+)-")
 
 
 def marker_name(kind: str) -> str:
@@ -58,14 +59,21 @@ def _pid_alive(pid: int) -> bool:
 
 
 def clean_stale(folder: str | Path) -> list[Path]:
-    """Remove our temporary files and folders in `folder` whose owning process is dead; return them."""
+    """Remove our temporary files and folders in `folder` whose owning process is dead; return them.
+
+    Beside the user's outputs only hidden names of ours (`.lidar2xodr-PID-...`) are touched; the
+    unhidden form is ours only in the system's temporary folder (a user's `lidar2xodr-2024-runs/`
+    next to a map is theirs).
+    """
     removed: list[Path] = []
     try:
         entries = list(Path(folder).iterdir())
+        system = Path(folder).resolve() == Path(tempfile.gettempdir()).resolve()
     except OSError:
         return removed
+    pattern = _STALE_SYSTEM if system else _STALE_HIDDEN
     for entry in entries:
-        m = _STALE.match(entry.name)
+        m = pattern.match(entry.name)
         if m is None or int(m.group(1)) == os.getpid() or _pid_alive(int(m.group(1))):
             continue
         try:
