@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import hashlib
+import json
 import os
 import pathlib
 import shutil
@@ -455,6 +456,28 @@ def test_sigterm_and_sigint_leave_nothing(sig: int, code: int, tmp_path: Path, a
     assert (out / "map.xodr").read_text() == "the map of an earlier build"
 
 
+def test_sigterm_to_the_whole_group_during_extraction_is_one_clean_exit(tmp_path: Path,
+                                                                        assets: dict[str, Path]) -> None:
+    """`timeout` and container stops signal every process: the extraction workers leave it to the build."""
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("extraction:\n  workers: 2\n")
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "lidar2xodr.cli", "build", str(assets["drive"]), "-o",
+                             str(out / "map.xodr"), "-c", str(cfg)], env=_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        if not _wait(lambda: len(_descendants(proc.pid)) >= 2, 60):
+            pytest.fail(f"the build never started its workers: {proc.communicate(timeout=60)}")
+        os.killpg(proc.pid, signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 143, err
+    assert "Traceback" not in err and len([ln for ln in err.splitlines() if ln.strip()]) == 1, err
+    assert not out.exists() or list(out.iterdir()) == []
+
+
 def test_sigkill_takes_the_checker_along_and_the_next_run_cleans_up(tmp_path: Path,
                                                                      assets: dict[str, Path]) -> None:
     import tempfile
@@ -522,6 +545,34 @@ def test_stale_temp_of_a_live_process_is_kept(tmp_path: Path, assets: dict[str, 
     res = runner.invoke(app, ["compare", str(assets["map"]), str(assets["map"]), "--json", str(tmp_path / "m.json")])
     assert res.exit_code == 0
     assert live.exists() and not dead.exists()
+
+
+@pytest.mark.parametrize("extra", [["--scenario", "{out}/map.xodr"], ["--lanelet2", "{out}/map.xodr"],
+                                   ["--report", "{out}/rep", "--keep-intermediate", "{out}/rep"],
+                                   ["--report", "{out}"]])
+def test_two_outputs_on_one_path_are_refused_before_any_work(extra: list[str], tmp_path: Path,
+                                                             assets: dict[str, Path]) -> None:
+    """One path for two outputs would let one overwrite the other (and exit 0): exit 2, nothing written."""
+    out = tmp_path / "out"
+    out.mkdir()
+    line = hostile(["build", assets["drive"], "-o", out / "map.xodr", *[a.format(out=out) for a in extra]], tmp_path)
+    assert "two outputs" in line or "inside the" in line, line
+
+
+def test_demo_with_an_impossible_length_is_a_usage_error_and_writes_nothing(tmp_path: Path) -> None:
+    line = hostile(["demo", "--length-m", "0", "-o", tmp_path / "demo"], tmp_path, names="--length-m")
+    assert "internal error" not in line and not (tmp_path / "demo").exists()
+
+
+def test_check_uses_the_check_section_of_the_config(tmp_path: Path, assets: dict[str, Path]) -> None:
+    """`check --config`: a 'narrow lane' limit above the demo road's 3.5 m lanes makes every lane narrow."""
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("check:\n  narrow_lane_m: 5.0\n  zero_width_m: 0.05\n")
+    plain, strict = tmp_path / "plain.json", tmp_path / "strict.json"
+    assert runner.invoke(app, ["check", str(assets["map"]), "--json", str(plain)]).exit_code == 0
+    assert runner.invoke(app, ["check", str(assets["map"]), "--json", str(strict), "-c", str(cfg)]).exit_code == 0
+    assert json.loads(plain.read_text())["lane_widths"]["narrow"] == []
+    assert json.loads(strict.read_text())["lane_widths"]["narrow"]
 
 
 def test_a_users_folder_named_like_ours_is_never_cleaned(tmp_path: Path, assets: dict[str, Path]) -> None:

@@ -28,6 +28,7 @@ from rich.markup import escape
 
 from lidar2xodr import __version__
 from lidar2xodr.errors import InputError, OutputError
+from lidar2xodr.fileio import prepare_outputs, staged_outputs
 
 app = typer.Typer(
     name="lidar2xodr",
@@ -193,13 +194,6 @@ def write_json(path: Path, data: dict[str, Any]) -> None:
     write_text(path, json.dumps(data, indent=2, sort_keys=True) + "\n")
 
 
-def _outputs(files: list[Path | None], folders: list[tuple[Path | None, str]] | None = None) -> None:
-    """Refuse unusable outputs before any work (see pipeline.prepare_outputs)."""
-    from lidar2xodr.pipeline import prepare_outputs
-
-    prepare_outputs(files, folders or [])
-
-
 ConfigOpt = _opt(None, "--config", "-c", help="YAML configuration (see README).")
 
 
@@ -215,7 +209,7 @@ def compare(
     from lidar2xodr.config import Config
     from lidar2xodr.evaluation import compare_maps, print_metrics
 
-    _outputs([json_out])
+    prepare_outputs([json_out])
     cfg = Config.load(config).evaluation
     with _busy(f"comparing {generated} with {reference}"):
         metrics = compare_maps(generated, reference, cfg)
@@ -229,13 +223,16 @@ def compare(
 def check(
     path: Path = _arg(help="An .xodr map or an .xosc scenario."),
     json_out: Path | None = _opt(None, "--json", help="Write the verdict as JSON."),
+    config: Path | None = ConfigOpt,
 ) -> None:
     """ASAM quality checker plus our continuity checks. Exit code 1 when the file has errors."""
     from lidar2xodr.check import check_file, print_check
+    from lidar2xodr.config import Config
 
-    _outputs([json_out])
+    prepare_outputs([json_out])
+    cfg = Config.load(config).check
     with _busy(f"checking {path}"):
-        result = check_file(path)
+        result = check_file(path, cfg=cfg)
     if json_out:
         write_json(json_out, result)
     print_check(result, out)
@@ -268,9 +265,8 @@ def build(
 ) -> None:
     """The whole pipeline: extract markings, build lanes, export a checked OpenDRIVE map."""
     from lidar2xodr.config import Config
-    from lidar2xodr.pipeline import BuildPipeline, prepare_outputs
+    from lidar2xodr.pipeline import BuildPipeline
 
-    prepare_outputs([output, scenario, lanelet2, geojson], [(report, "report"), (keep_intermediate, "intermediate")])
     cfg = Config.load(config)
     if odometry:
         cfg = cfg.model_copy(update={"extraction": cfg.extraction.model_copy(update={"odometry": odometry.value})})
@@ -298,7 +294,21 @@ def demo(
     """Simulate a drive on the project's own demo road, build the map, check it, compare with the truth."""
     from lidar2xodr.pipeline import run_demo
 
-    run_demo(out_dir, length_m=length_m, seed=seed, console=console, out=out)
+    run_demo(out_dir, _sim_options(length_m=length_m, seed=seed), console=console, out=out)
+
+
+def _sim_options(**raw: Any) -> Any:
+    """The simulator's options from command-line values; a value out of range names its option (exit 2)."""
+    from pydantic import ValidationError
+
+    from lidar2xodr.simulation import SimOptions
+
+    try:
+        return SimOptions(**raw)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        name = "--" + str(err["loc"][0]).replace("_", "-")
+        raise InputError(name, f"{err['msg']} (got {err.get('input')!r})") from None
 
 
 @app.command(epilog="Example: lidar2xodr scenario drive/ --map map.xodr -o drive.xosc")
@@ -315,11 +325,10 @@ def scenario(
     """OpenSCENARIO of the recorded traffic on a map, with cut-ins, cut-outs and lane changes."""
     from lidar2xodr.config import Config
     from lidar2xodr.export_scenario import export_scenario, print_summary
-    from lidar2xodr.fileio import staged_outputs
     from lidar2xodr.opendrive import OpenDriveMap
     from lidar2xodr.tracks import load_tracks, read_poses_csv
 
-    _outputs([out_path, json_out])
+    prepare_outputs([out_path, json_out])
     cfg = Config.load(config)
     ego = read_poses_csv(ego_path) if ego_path else None
     geo = OpenDriveMap.load(map_path).geo_reference
@@ -353,22 +362,12 @@ def simulate(
                                   "road (needed by --odometry lidar)."),
 ) -> None:
     """Turn any OpenDRIVE map into a simulated LiDAR test drive with ground truth."""
-    from pydantic import ValidationError
-
-    from lidar2xodr.simulation import SimOptions
     from lidar2xodr.simulation import simulate as run_simulation
 
-    _outputs([], [(out_dir, "drive")])
-    raw = dict(start_road=start_road, speed_kmh=speed_kmh, length_m=length_m, sensor=sensor.value,
-               traffic=traffic.value,
-               gnss_noise_m=gnss_noise_m, gnss_outage=gnss_outage, seed=seed, rosbag=rosbag, preview=preview,
-               roadside=roadside)
-    try:
-        opts = SimOptions(**raw)
-    except ValidationError as exc:
-        err = exc.errors()[0]
-        name = "--" + str(err["loc"][0]).replace("_", "-")
-        raise InputError(name, f"{err['msg']} (got {err.get('input')!r})") from None
+    prepare_outputs([], [(out_dir, "drive")])
+    opts = _sim_options(start_road=start_road, speed_kmh=speed_kmh, length_m=length_m, sensor=sensor.value,
+                        traffic=traffic.value, gnss_noise_m=gnss_noise_m, gnss_outage=gnss_outage, seed=seed,
+                        rosbag=rosbag, preview=preview, roadside=roadside)
     s = run_simulation(map_path, out_dir, opts, console=console)
     out.print(f"wrote {s.out_dir}: {s.scans} scans, {s.points:,} points, {s.length_m / 1000:.2f} km in "
               f"{s.duration_s:.0f} s ({s.mean_speed_kmh:.0f} km/h), {s.passes} pass(es) over roads "
@@ -398,10 +397,9 @@ def extract(
     from lidar2xodr.config import Config
     from lidar2xodr.datasets import open_dataset
     from lidar2xodr.extraction import ExtractionReport, extract_markings
-    from lidar2xodr.fileio import staged_outputs
     from lidar2xodr.markings_io import save_markings
 
-    _outputs([output])
+    prepare_outputs([output])
     cfg = Config.load(config).extraction
     if odometry is not None:
         cfg = cfg.model_copy(update={"odometry": odometry.value})
@@ -441,12 +439,12 @@ def lanes(
     """Lanes from markings alone (paper Alg. 1 and 2): candidates, superlines, boundaries, sections."""
     from lidar2xodr.branches import build_network, save_network
     from lidar2xodr.config import Config
-    from lidar2xodr.fileio import atomic_dir, staged_outputs
+    from lidar2xodr.fileio import atomic_dir
     from lidar2xodr.lanes import build_lane_model
     from lidar2xodr.markings import find_candidates
     from lidar2xodr.markings_io import load_markings
 
-    _outputs([output], [(report, "report")])
+    prepare_outputs([output], [(report, "report")])
     cfg = Config.load(config)
     cloud = load_markings(markings)
     if len(cloud.xyz) == 0:
@@ -490,7 +488,7 @@ def export(
     from lidar2xodr.markings_io import load_markings
     from lidar2xodr.pipeline import _verdict_line, write_checked_map
 
-    _outputs([output])
+    prepare_outputs([output])
     cfg = Config.load(config)
     model = load_network(lanes_json)
     planes = load_markings(markings).planes if markings else None
@@ -529,7 +527,7 @@ def export_lanelet2(
     from lidar2xodr.config import Config
     from lidar2xodr.export_lanelet2 import export_lanelet2 as run_export
 
-    _outputs([output])
+    prepare_outputs([output])
     s = run_export(map_path, output, Config.load(config).interchange)
     out.print(f"wrote {output}: {s.lanelets} lanelets, {s.linestrings} linestrings, {s.points:,} points, "
               f"{s.joined_ends} linked lane ends joined; projector origin {s.origin_lat:.7f} N "
@@ -549,7 +547,7 @@ def export_geojson(
     from lidar2xodr.config import Config
     from lidar2xodr.export_geojson import export_geojson as run_export
 
-    _outputs([output])
+    prepare_outputs([output])
     s = run_export(map_path, output, Config.load(config).interchange)
     out.print(f"wrote {output}: {s.reference_lines} reference lines, {s.lanes} lanes, {s.boundaries} lane "
               f"borders", highlight=False, markup=False)

@@ -1021,10 +1021,15 @@ _JOB: _Job | None = None
 
 
 def _pool_init(job: _Job, parent_pid: int) -> None:
+    """A worker: dies with the build; Ctrl-C and SIGTERM (sent to the whole group) are the parent's to handle."""
+    import signal
+
     from lidar2xodr.lifetime import die_with_parent
 
     global _JOB
-    die_with_parent(parent_pid)  # a killed build takes its workers with it
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    die_with_parent(parent_pid)
     _JOB = job
 
 

@@ -133,6 +133,32 @@ def check_output_dir(target: str | Path, kind: str) -> Path:
     return target
 
 
+def prepare_outputs(files: list[Path | None], folders: list[tuple[Path | None, str]] | None = None) -> None:
+    """Refuse unusable outputs before any work (a folder as a file, a foreign folder, two outputs on
+    one path); remove a killed run's leftovers beside them."""
+    targets: dict[Path, str] = {}
+    parents = set()
+    named = [(f, None) for f in files] + list(folders or [])
+    for path, kind in named:
+        if path is None:
+            continue
+        if kind is None:
+            check_output_file(path)
+        else:
+            check_output_dir(path, kind)
+        key = Path(path).resolve()
+        if key in targets:
+            raise OutputError(path, f"given for two outputs (the {targets[key]} and the {kind or 'file'})")
+        targets[key] = kind or "file"
+        parents.add(Path(path).parent)
+    for key in targets:
+        for folder, kind in targets.items():
+            if kind != "file" and folder != key and folder in key.parents:
+                raise OutputError(key, f"lies inside the {kind} folder {folder}, which this command replaces")
+    for parent in parents | {Path(tempfile.gettempdir())}:
+        clean_stale(parent)
+
+
 @dataclass
 class _Staged:
     """Renames deferred until the command succeeded: (temporary path, target, folder kind or None)."""

@@ -26,7 +26,7 @@ from lidar2xodr.fileio import (
     atomic_dir,
     check_output_dir,
     check_output_file,
-    clean_stale,
+    prepare_outputs,
     staged,
     staged_outputs,
 )
@@ -56,23 +56,6 @@ def progress_bar(console: Console) -> Progress:
         transient=True,
         disable=not console.is_terminal,
     )
-
-
-def prepare_outputs(files: list[Path | None], folders: list[tuple[Path | None, str]]) -> None:
-    """Refuse unusable outputs before any work; remove a killed run's leftovers beside them."""
-    import tempfile
-
-    parents = set()
-    for path in files:
-        if path is not None:
-            check_output_file(path)
-            parents.add(Path(path).parent)
-    for folder, kind in folders:
-        if folder is not None:
-            check_output_dir(folder, kind)
-            parents.add(Path(folder).parent)
-    for parent in parents | {Path(tempfile.gettempdir())}:
-        clean_stale(parent)
 
 
 class BuildPipeline:
@@ -294,7 +277,7 @@ def write_checked_map(
             summary = exporter.export_opendrive(single, planes, config.export, out)
         t1 = time.perf_counter()
         with stage("check") if stage is not None else _no_stage():
-            verdict = check_file(staged(out))
+            verdict = check_file(staged(out), cfg=config.check)
         verdict["file"] = str(out)
         timings.update(export=t1 - t0, check=time.perf_counter() - t1)
         if not verdict["ok"] and not allow_invalid:
@@ -360,11 +343,11 @@ def print_summary(result: BuildResult, console: Console) -> None:
     console.print(table)
 
 
-def run_demo(out_dir: Path, length_m: float, seed: int, console: Console, out: Console) -> BuildResult:
-    """`make demo`: simulate a drive on the project's own road, build, check, compare with the truth."""
+def run_demo(out_dir: Path, opts: Any, console: Console, out: Console) -> BuildResult:
+    """`make demo`: simulate a drive (`opts`: SimOptions) on the project's own road, build, check, compare."""
     from lidar2xodr.demo_road import write_demo_road
     from lidar2xodr.fileio import marker_name
-    from lidar2xodr.simulation import SimOptions, simulate
+    from lidar2xodr.simulation import simulate
 
     out_dir = check_output_dir(out_dir, "demo")
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -373,8 +356,8 @@ def run_demo(out_dir: Path, length_m: float, seed: int, console: Console, out: C
         "demo_road.xodr\ndrive\nmap.xodr\nmap.xosc\nreport\n", encoding="utf-8")
     truth = write_demo_road(out_dir / "demo_road.xodr")
     drive = out_dir / "drive"
-    console.print(f"[bold]1/2[/] simulating a {length_m:.0f} m drive on {truth}")
-    simulate(truth, drive, SimOptions(length_m=length_m, seed=seed), console=console)
+    console.print(f"[bold]1/2[/] simulating a {opts.length_m:.0f} m drive on {truth}")
+    simulate(truth, drive, opts, console=console)
     console.print(f"[bold]2/2[/] building the map from {drive}")
     result = BuildPipeline(
         drive, out_dir / "map.xodr", report_dir=out_dir / "report", scenario=out_dir / "map.xosc",
