@@ -478,6 +478,33 @@ def test_sigterm_to_the_whole_group_during_extraction_is_one_clean_exit(tmp_path
     assert not out.exists() or list(out.iterdir()) == []
 
 
+def test_sigterm_during_a_slow_checker_ends_it_at_once(tmp_path: Path, assets: dict[str, Path]) -> None:
+    """The checker runs in a thread of ours; a SIGTERM to `check` must not wait for it (up to 900 s) but kill it."""
+    venv = tmp_path / "slow-qc"
+    (venv / "bin").mkdir(parents=True)
+    (venv / "bin" / "python").write_text("#!/bin/sh\nexec sleep 601\n")
+    (venv / "bin" / "python").chmod(0o755)
+    proc = subprocess.Popen([sys.executable, "-m", "lidar2xodr.cli", "check", str(assets["map"])],
+                            env={**_env(), "LIDAR2XODR_QC_VENV": str(venv)}, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+    def sleeper() -> set[int]:
+        return {k for k in _descendants(proc.pid)
+                if "601" in Path(f"/proc/{k}/cmdline").read_text(errors="ignore")}
+
+    try:
+        if not _wait(lambda: bool(sleeper()), 60):
+            pytest.fail(f"check never started its checker: {proc.communicate(timeout=60)}")
+        slow = sleeper()
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        proc.kill()
+    assert proc.returncode == 143, err
+    assert "Traceback" not in err and len([ln for ln in err.splitlines() if ln.strip()]) == 1, err
+    assert _wait(lambda: not any(_alive(k) for k in slow), 10), "the checker outlived check"
+
+
 def test_sigkill_takes_the_checker_along_and_the_next_run_cleans_up(tmp_path: Path,
                                                                      assets: dict[str, Path]) -> None:
     import tempfile

@@ -71,7 +71,7 @@ from rich.table import Table
 from lidar2xodr.config import CheckConfig
 from lidar2xodr.errors import InputError
 from lidar2xodr.fileio import temp_dir
-from lidar2xodr.lifetime import child_preexec
+from lidar2xodr.lifetime import children_killed_on_exit, run_child
 from lidar2xodr.quality.lane_widths import lane_widths
 from lidar2xodr.quality.readers import (
     find_netconvert,
@@ -177,9 +177,8 @@ def run_asam_checker(path: Path, venv: Path | None = None) -> dict[str, Any]:
         checked, namespace = _plain_copy(path, Path(tmp)) if module == "qc_opendrive" else (path, None)
         _write_config(cfg, checked.resolve(), bundle, result)
         try:
-            proc = subprocess.run([str(venv / "bin" / "python"), "-m", module, "-c", str(cfg)], cwd=tmp,
-                                  capture_output=True, text=True, timeout=QC_TIMEOUT_S, check=False,
-                                  preexec_fn=child_preexec())
+            proc = run_child([str(venv / "bin" / "python"), "-m", module, "-c", str(cfg)], cwd=tmp,
+                             timeout=QC_TIMEOUT_S)
         except subprocess.TimeoutExpired:
             raise InputError(path, f"the ASAM checker did not finish within {QC_TIMEOUT_S} s") from None
         except OSError as exc:
@@ -371,7 +370,7 @@ def check_file(path: Path, readers: bool = True, cfg: CheckConfig | None = None)
     venv = find_qc_venv()
     result: dict[str, Any] = {"file": str(path), "kind": suffix[1:]}
     reasons = []
-    with ThreadPoolExecutor(max_workers=5) as pool:
+    with ThreadPoolExecutor(max_workers=5) as pool, children_killed_on_exit():
         asam = pool.submit(run_asam_checker, path, venv)
         jobs: dict[str, Future] = {}
         if suffix == ".xodr" and readers:

@@ -2,7 +2,8 @@
 
 `timeout`, CI runners and container stops send SIGTERM; `terminate_as_interrupt` turns it into
 `Terminated` (a KeyboardInterrupt), so the same clean-up runs: temporary outputs are removed and
-running checkers are killed by `subprocess.run`. A SIGKILL runs no clean-up at all, so the
+every child started with `run_child` is killed (`children_killed_on_exit`), also where a thread of
+ours is the one waiting for it. A SIGKILL runs no clean-up at all, so the
 extraction's worker processes and the checker/reader subprocesses ask the kernel to kill them
 when their parent dies (Linux `prctl(PR_SET_PDEATHSIG)`), and the next run removes the dead
 run's temporary folders (`fileio.clean_stale`).
@@ -15,8 +16,9 @@ import ctypes
 import functools
 import os
 import signal
+import subprocess
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from types import FrameType
 
 _PR_SET_PDEATHSIG = 1
@@ -64,3 +66,50 @@ def die_with_parent(parent_pid: int | None = None) -> None:
 def child_preexec() -> functools.partial[None]:
     """A `preexec_fn` for our subprocesses: the child dies with this process."""
     return functools.partial(die_with_parent, os.getpid())
+
+
+_CHILDREN: set[subprocess.Popen[str]] = set()
+_CHILDREN_LOCK = threading.Lock()
+
+
+def run_child(cmd: Sequence[str], *, timeout: float, env: dict[str, str] | None = None,
+              cwd: str | os.PathLike[str] | None = None) -> subprocess.CompletedProcess[str]:
+    """`subprocess.run(cmd, capture_output=True, text=True)` for a child that dies with us.
+
+    The child is registered while it runs, so `kill_children` can end it from the main thread
+    while a worker thread waits for it (an interrupted `check` must not wait up to `timeout`
+    for a checker that nobody reads any more).
+    """
+    with subprocess.Popen(list(cmd), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=cwd,
+                          preexec_fn=child_preexec()) as proc:
+        with _CHILDREN_LOCK:
+            _CHILDREN.add(proc)
+        try:
+            out, err = proc.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.communicate()
+            raise
+        finally:
+            with _CHILDREN_LOCK:
+                _CHILDREN.discard(proc)
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+
+
+def kill_children() -> None:
+    """SIGKILL every child of `run_child` that still runs."""
+    with _CHILDREN_LOCK:
+        running = list(_CHILDREN)
+    for proc in running:
+        with contextlib.suppress(OSError):
+            proc.kill()
+
+
+@contextlib.contextmanager
+def children_killed_on_exit() -> Iterator[None]:
+    """Leaving the block by an exception (Ctrl-C, SIGTERM, an error) kills the children it started."""
+    try:
+        yield
+    except BaseException:
+        kill_children()
+        raise

@@ -33,7 +33,7 @@ import numpy as np
 from lxml import etree
 
 from lidar2xodr.fileio import temp_dir
-from lidar2xodr.lifetime import child_preexec
+from lidar2xodr.lifetime import run_child
 
 READER_TIMEOUT_S = 600
 """A reader that has not finished a map within this time is reported as failed (SUMO needs ~10 s for Town04)."""
@@ -110,8 +110,7 @@ def run_netconvert(path: Path) -> dict[str, Any]:
     if nc.note:
         out["note"] = nc.note.rstrip("; ")
     try:
-        head = subprocess.run([str(nc.exe), "--version"], capture_output=True, text=True, env=env, timeout=60,
-                              check=False, preexec_fn=child_preexec())
+        head = run_child([str(nc.exe), "--version"], env=env, timeout=60)
         number = re.search(r"\d+\.\d+(\.\d+)?", (head.stdout.strip().splitlines() or [""])[0])
         out["version"] = number.group(0) if number else "?"
     except (OSError, subprocess.TimeoutExpired):
@@ -124,8 +123,7 @@ def run_netconvert(path: Path) -> dict[str, Any]:
         net = Path(tmp) / "map.net.xml"
         cmd = [str(nc.exe), "--opendrive-files", str(path.resolve()), "--aggregate-warnings", "-1", "-o", str(net)]
         try:
-            proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=tmp, timeout=READER_TIMEOUT_S,
-                                  check=False, preexec_fn=child_preexec())
+            proc = run_child(cmd, env=env, cwd=tmp, timeout=READER_TIMEOUT_S)
         except subprocess.TimeoutExpired:
             return {**out, "ok": False, "returncode": None, "warnings": [],
                     "errors": [f"netconvert did not finish within {READER_TIMEOUT_S} s"]}
@@ -223,8 +221,7 @@ def run_in_subprocess(reader: str, path: Path, timeout_s: float = READER_TIMEOUT
     except importlib.metadata.PackageNotFoundError:
         version = "?"
     try:
-        proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout_s, check=False,
-                              preexec_fn=child_preexec())
+        proc = run_child(cmd, env=env, timeout=timeout_s)
     except subprocess.TimeoutExpired:
         return {"available": True, "reader": names[reader], "version": version, "ok": False, "warnings": [],
                 "errors": [f"{names[reader]} did not finish within {timeout_s:.0f} s"]}
