@@ -117,6 +117,24 @@ def test_bad_config_is_one_line(case: str, tmp_path: Path) -> None:
     assert field in line
 
 
+@pytest.mark.parametrize(("options", "said"), [
+    (["--intensity-scale", "0"], "positive"),
+    (["--intensity-scale", "-255"], "positive"),
+    (["--intensity-scale", "nan"], "positive"),
+    (["--topic", "/points"], "--topic does not apply"),
+    (["--pose-topic", "/odom"], "--pose-topic does not apply"),
+    (["--intensity-scale", "255"], "--intensity-scale does not apply"),
+])
+@pytest.mark.parametrize("command", ["build", "extract"])
+def test_reader_options_that_would_be_ignored_or_mean_nothing_are_refused(
+        command: str, options: list[str], said: str, tmp_path: Path, assets: dict[str, Path]) -> None:
+    """Our own drive format states its intensity scale and has no topics: an option for it is a mistake."""
+    out = tmp_path / "out"
+    target = {"build": out / "m.xodr", "extract": out / "m.ply"}[command]
+    line = hostile([command, assets["drive"], "-o", target, *options], tmp_path, names=assets["drive"])
+    assert said in line
+
+
 @pytest.mark.parametrize("command", ["build", "extract", "lanes", "export", "scenario", "compare"])
 def test_bad_config_is_refused_by_every_command(command: str, tmp_path: Path, assets: dict[str, Path]) -> None:
     cfg = tmp_path / "c.yaml"

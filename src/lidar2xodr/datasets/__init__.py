@@ -8,6 +8,7 @@ metadata.yaml), `folder` (scan files directly inside). `format=` overrides the g
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 from lidar2xodr.datasets.base import Dataset, ReadStats
@@ -60,6 +61,7 @@ def open_dataset(
     fmt = format or detect_format(path)
     if not path.exists():
         raise InputError(path, "no such file or folder")
+    _check_options(path, fmt, topic=topic, pose_topic=pose_topic, intensity_scale=intensity_scale)
     if fmt == "drive":
         from lidar2xodr.datasets.drive import DriveDataset
 
@@ -83,3 +85,22 @@ def open_dataset(
             raise InputError(path, "the folder format needs a folder of scan files")
         return FolderDataset(path, intensity_scale=intensity_scale)
     raise InputError(path, f"unknown format {fmt!r} (known: {', '.join(FORMATS)})")
+
+
+def _check_options(path: Path, fmt: str, *, topic: str | None, pose_topic: str | None,
+                   intensity_scale: float | None) -> None:
+    """Refuse reader options the drive's format would silently ignore, and scales that mean nothing.
+
+    A `--topic` given for a folder of PCDs, or an `--intensity-scale` for a drive whose format
+    states its own scale (meta.yaml, the aiMotive and KITTI layouts), is a user's mistake that
+    would otherwise change nothing and go unnoticed.
+    """
+    if intensity_scale is not None and not (math.isfinite(intensity_scale) and intensity_scale > 0):
+        raise InputError(path, f"--intensity-scale must be a positive number, not {intensity_scale:g}")
+    unused = [name for name, value, used_by in (("--topic", topic, {"rosbag"}),
+                                                ("--pose-topic", pose_topic, {"rosbag"}),
+                                                ("--intensity-scale", intensity_scale, {"rosbag", "folder"}))
+              if value is not None and fmt not in used_by]
+    if unused:
+        raise InputError(path, f"{' and '.join(unused)} {'does' if len(unused) == 1 else 'do'} not apply to a drive of format {fmt!r} "
+                         "(topics are for bags; the intensity scale for folders and bags)")
