@@ -548,17 +548,17 @@ def test_sigkill_takes_the_checker_along_and_the_next_run_cleans_up(tmp_path: Pa
 
 @pytest.mark.parametrize("kind", ["pool worker", "subprocess"])
 def test_children_die_with_a_killed_parent(kind: str, tmp_path: Path) -> None:
-    """The extraction's pool initializer and our subprocesses' preexec_fn tie them to the parent."""
+    """The extraction's pool (`scheduler.task_runner`) and our subprocesses' preexec_fn tie them to the parent."""
     script = textwrap.dedent(f"""
         import os, subprocess, sys, time
-        from concurrent.futures import ProcessPoolExecutor
-        import multiprocessing as mp
-        from lidar2xodr import extraction
         from lidar2xodr.lifetime import child_preexec
+        from lidar2xodr.scheduler import task_runner
+        def pid(job):
+            return os.getpid()
         if {kind!r} == "pool worker":
-            pool = ProcessPoolExecutor(2, mp_context=mp.get_context("fork"), initializer=extraction._pool_init,
-                                       initargs=(None, os.getpid()))
-            print(pool.submit(os.getpid).result(), flush=True)
+            with task_runner(None, 2, None) as submit:
+                print(submit(pid).result(), flush=True)
+                time.sleep(60)
         else:
             child = subprocess.Popen(["sleep", "60"], preexec_fn=child_preexec())
             print(child.pid, flush=True)

@@ -195,6 +195,19 @@ def write_json(path: Path, data: dict[str, Any]) -> None:
 
 
 ConfigOpt = _opt(None, "--config", "-c", help="YAML configuration (see README).")
+SchedulerOpt = _opt(None, "--scheduler", help="Run the per-scan work on Dask: 'local' (a LocalCluster) or a "
+                    "scheduler address such as tcp://host:8786 (default: a process pool here).")
+
+
+def _with_scheduler(cfg: Any, scheduler: str) -> Any:
+    """The extraction configuration with `--scheduler`, validated like the configuration file's."""
+    from lidar2xodr.scheduler import valid_scheduler
+
+    try:
+        valid_scheduler(scheduler)
+    except ValueError as exc:
+        raise InputError("--scheduler", str(exc)) from None
+    return cfg.model_copy(update={"scheduler": scheduler})
 
 
 @app.command(epilog="Example: lidar2xodr compare map.xodr truth.xodr --json metrics.json")
@@ -262,6 +275,7 @@ def build(
                                          help="Raw intensity that means 100 % (folders, bags)."),
     lanelet2: Path | None = _opt(None, "--lanelet2", help="Also write the map as Lanelet2 (.osm)."),
     geojson: Path | None = _opt(None, "--geojson", help="Also write the map as GeoJSON (WGS84)."),
+    scheduler: str | None = SchedulerOpt,
 ) -> None:
     """The whole pipeline: extract markings, build lanes, export a checked OpenDRIVE map."""
     from lidar2xodr.config import Config
@@ -270,6 +284,8 @@ def build(
     cfg = Config.load(config)
     if odometry:
         cfg = cfg.model_copy(update={"extraction": cfg.extraction.model_copy(update={"odometry": odometry.value})})
+    if scheduler is not None:
+        cfg = cfg.model_copy(update={"extraction": _with_scheduler(cfg.extraction, scheduler)})
     if reference is not None and not reference.is_file():
         raise InputError(reference, "reference map not found")
     result = BuildPipeline(
@@ -390,6 +406,7 @@ def extract(
     intensity_scale: float | None = _opt(None, "--intensity-scale",
                                                     help="Raw intensity that means 100 % (folders, bags)."),
     config: Path | None = ConfigOpt,
+    scheduler: str | None = SchedulerOpt,
 ) -> None:
     """Lane-marking points of every scan, accumulated in one world frame (paper Sec. III-B)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
@@ -403,6 +420,8 @@ def extract(
     cfg = Config.load(config).extraction
     if odometry is not None:
         cfg = cfg.model_copy(update={"odometry": odometry.value})
+    if scheduler is not None:
+        cfg = _with_scheduler(cfg, scheduler)
     dataset = open_dataset(drive, format.value if format else None, topic=topic, pose_topic=pose_topic,
                            intensity_scale=intensity_scale)
     rep = ExtractionReport()

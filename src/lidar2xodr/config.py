@@ -10,9 +10,10 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from lidar2xodr.errors import InputError
+from lidar2xodr.scheduler import valid_scheduler
 
 
 class _Section(BaseModel):
@@ -107,6 +108,10 @@ class ExtractionConfig(_Section):
     workers: Annotated[int, Field(ge=1)] | Literal["auto"] = Field(
         "auto", description="ours: processes reading and filtering scans in parallel (same bytes as 1); "
         "auto = the CPUs this process may use, at most 8")
+    scheduler: Annotated[str | None, AfterValidator(valid_scheduler)] = Field(
+        None, description="ours: where the per-scan work runs: None = a process pool of `workers` on this machine; "
+        "'local' = a Dask LocalCluster of `workers` processes; a Dask address (tcp://host:8786) = that cluster's "
+        "workers, which must see the drive at the same path. Same bytes in every case (lidar2xodr.scheduler)")
     moving_filter: bool = Field(True, description="ours: remove the trails of moving objects (the low, bright rear of "
                                       "a vehicle driving with the ego) from the accumulated marking cloud")
     moving_voxel_m: float = Field(1.0, gt=0, description="ours: a point is transient when its cell of this size (xy) "

@@ -1017,64 +1017,45 @@ class _Job:
             return k, None, ReadStats(), (exc.where, exc.problem)
 
 
-_JOB: _Job | None = None
+def _read_batch(job: _Job, ks: range, threshold: float | None) -> list[_Result]:
+    return [job.read_filter(k, threshold) for k in ks]
 
 
-def _pool_init(job: _Job, parent_pid: int) -> None:
-    """A worker: dies with the build; Ctrl-C and SIGTERM (sent to the whole group) are the parent's to handle."""
-    import signal
-
-    from lidar2xodr.lifetime import die_with_parent
-
-    global _JOB
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    die_with_parent(parent_pid)
-    _JOB = job
-
-
-def _pool_read(ks: range, threshold: float | None) -> list[_Result]:
-    assert _JOB is not None
-    return [_JOB.read_filter(k, threshold) for k in ks]
-
-
-def _pool_filter(scan: Scan, threshold: float | None) -> ScanMarks:
-    assert _JOB is not None
-    return _JOB.filter(scan, threshold)
+def _filter_one(job: _Job, scan: Scan, threshold: float | None) -> ScanMarks:
+    return job.filter(scan, threshold)
 
 
 def _filtered(dataset: Dataset, cfg: ExtractionConfig, state: dict, odometry: bool,
               placer: GnssPlacer | None) -> Iterator[ScanMarks]:
-    """`_Job.filter` over the drive, in recording order; with `workers` > 1 in a process pool.
+    """`_Job.filter` over the drive, in recording order; with `workers` > 1 or a Dask scheduler in parallel.
 
-    With a pool (fork) each worker reads, filters and places whole scans
-    (`ScanFileDataset.read_scan`), `_BATCH` consecutive scans per task, so only the few marking
-    points travel between processes, and few messages; the parent reads the first readable scan
-    itself, since it fixes the reader's intensity scale (and an estimated mount) that the workers
-    inherit. At most 2 tasks per worker are in flight (memory stays flat on long drives) and
-    results are taken in recording order, so the output is the same bytes as with one process.
-    `state` holds the threshold known when a scan is handed out (a per-drive threshold may still
-    be unknown). Readers of one stream (rosbag) are read in the parent and filtered in the pool.
+    In parallel (`scheduler.task_runner`: a fork pool, or Dask) each worker reads, filters and
+    places whole scans (`ScanFileDataset.read_scan`), `_BATCH` consecutive scans per task, so only
+    the few marking points travel between processes, and few messages; the parent reads the first
+    readable scan itself, since it fixes the reader's intensity scale (and an estimated mount) that
+    the workers receive with the job. At most 2 tasks per worker are in flight (memory stays flat
+    on long drives) and results are taken in recording order, so the output is the same bytes as
+    with one process. `state` holds the threshold known when a scan is handed out (a per-drive
+    threshold may still be unknown). Readers of one stream (rosbag) are read in the parent and
+    filtered in parallel.
     """
+    from lidar2xodr.scheduler import task_runner
+
     mount_z = float(dataset.sensor.mount[2, 3])
     max_range = cfg.max_range_m if cfg.max_range_m is not None else dataset.sensor.max_range_m
     job = _Job(dataset, cfg, mount_z, max_range, odometry, placer)
     workers = min(worker_count(cfg), max(1, len(dataset)))
-    if workers <= 1:
+    if workers <= 1 and cfg.scheduler is None:
         for scan in dataset:
             yield job.filter(scan, state["threshold"])
         return
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
-    ctx = mp.get_context("fork")
+    in_flight = 2 * max(workers, 1)
     if not (isinstance(dataset, ScanFileDataset) and dataset.random_access):
         window: deque = deque()
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_pool_init,
-                                 initargs=(job, os.getpid())) as pool:
+        with task_runner(job, workers, cfg.scheduler) as submit:
             for scan in dataset:
-                window.append(pool.submit(_pool_filter, scan, state["threshold"]))
-                if len(window) >= 2 * workers:
+                window.append(submit(_filter_one, scan, state["threshold"]))
+                if len(window) >= in_flight:
                     yield window.popleft().result()
             while window:
                 yield window.popleft().result()
@@ -1094,11 +1075,10 @@ def _filtered(dataset: Dataset, cfg: ExtractionConfig, state: dict, odometry: bo
             if res[1] is not None:
                 break
         futures: deque = deque()
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_pool_init,
-                                 initargs=(job, os.getpid())) as pool:
+        with task_runner(job, workers, cfg.scheduler) as submit:
             while k < n or futures:
-                while k < n and len(futures) < 2 * workers:
-                    futures.append(pool.submit(_pool_read, range(k, min(k + _BATCH, n)), state["threshold"]))
+                while k < n and len(futures) < in_flight:
+                    futures.append(submit(_read_batch, range(k, min(k + _BATCH, n)), state["threshold"]))
                     k += _BATCH
                 for res in futures.popleft().result():
                     yield checked(res)

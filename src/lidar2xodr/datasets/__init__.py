@@ -102,5 +102,6 @@ def _check_options(path: Path, fmt: str, *, topic: str | None, pose_topic: str |
                                                 ("--intensity-scale", intensity_scale, {"rosbag", "folder"}))
               if value is not None and fmt not in used_by]
     if unused:
-        raise InputError(path, f"{' and '.join(unused)} {'does' if len(unused) == 1 else 'do'} not apply to a drive of format {fmt!r} "
+        verb = "does" if len(unused) == 1 else "do"
+        raise InputError(path, f"{' and '.join(unused)} {verb} not apply to a drive of format {fmt!r} "
                          "(topics are for bags; the intensity scale for folders and bags)")
