@@ -118,3 +118,21 @@ def test_stages_rerun_from_intermediates_give_the_same_map(demo_drive: tuple[Pat
                            "--markings", str(keep / "markings.ply")], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     assert (tmp_path / "rerun.xodr").read_bytes() == (tmp_path / "built.xodr").read_bytes()
+
+
+def test_the_summary_says_failed_only_when_a_reader_could_not_read_the_map() -> None:
+    """A reader that only warns (netconvert on an exit lane growing from zero width) still reads the map."""
+    from lidar2xodr.pipeline import _verdict_line
+
+    base = {"asam": {"errors": 0}, "continuity": {"max_leap_m": 0.0, "max_kink_rad": 0.0}}
+    warn = {"available": True, "reader": "SUMO netconvert", "ok": False, "returncode": 0, "errors": [],
+            "warnings": ["Warning: Lane '-1#1_0' is not connected from any incoming edge at junction '1#1'."]}
+    clean = {"available": True, "reader": "pyxodr", "ok": True, "warnings": [], "errors": []}
+    broken = {"available": True, "reader": "CARLA", "ok": False, "warnings": [],
+              "errors": ["CARLA crashed on the map (signal 6)"]}
+    failed_exit = {**warn, "reader": "netconvert", "warnings": [], "returncode": 1}
+    line = _verdict_line({**base, "readers": {"n": warn, "p": clean, "c": broken, "x": failed_exit}})
+    assert "SUMO netconvert: reads it with warnings, 1 warning(s), 0 error(s)" in line
+    assert "pyxodr: reads it, 0 warning(s), 0 error(s)" in line
+    assert "CARLA: FAILED to read it, 0 warning(s), 1 error(s)" in line
+    assert "netconvert: FAILED to read it" in line

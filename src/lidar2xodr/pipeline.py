@@ -294,6 +294,17 @@ def _no_stage() -> Iterator[None]:
     yield
 
 
+def _reader_state(rd: dict[str, Any]) -> str:
+    """'FAILED to read it' only on an error (or a failing exit); a reader that only warns still reads the map.
+
+    netconvert warns about a lane that grows from zero width without a predecessor (an exit lane),
+    and does so on the shared reference maps themselves: a warning, not a failed read.
+    """
+    if rd.get("errors") or rd.get("returncode") not in (None, 0):
+        return "FAILED to read it"
+    return "reads it with warnings" if rd.get("warnings") else "reads it"
+
+
 def _verdict_line(verdict: dict[str, Any]) -> str:
     asam = verdict.get("asam", {})
     cont = verdict.get("continuity", {})
@@ -306,8 +317,8 @@ def _verdict_line(verdict: dict[str, Any]) -> str:
         if not rd.get("available"):
             line += f"; {reader}: not available"
             continue
-        state = "reads it" if rd.get("ok", not rd.get("errors")) else "FAILED to read it"
-        line += f"; {reader}: {state}, {len(rd.get('warnings', []))} warning(s), {len(rd.get('errors', []))} error(s)"
+        line += f"; {reader}: {_reader_state(rd)}, {len(rd.get('warnings', []))} warning(s), " \
+                f"{len(rd.get('errors', []))} error(s)"
     return line
 
 
