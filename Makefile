@@ -63,6 +63,11 @@ JOBS ?= 1
 sweep: setup
 	$(BIN)/python bench/sweep.py --jobs $(JOBS)
 
+# issue #16: the paper's reproducibility protocol (four drives of one road, GNSS bias 0-2 m, three against the fourth)
+.PHONY: bench-repro
+bench-repro: setup
+	$(BIN)/python bench/reproducibility.py
+
 .PHONY: sweep-quick
 sweep-quick: setup
 	$(BIN)/python bench/sweep.py --quick --jobs $(JOBS)

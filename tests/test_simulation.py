@@ -5,6 +5,7 @@ map x = station s and map y = lateral t, so the true paint polygons are known ex
 from __future__ import annotations
 
 import hashlib
+import json
 import math
 from pathlib import Path
 
@@ -365,6 +366,21 @@ def test_written_gnss_poses_differ_from_truth_by_the_option(drive: Drive) -> Non
     assert np.array_equal(meas[:, 0], drive.truth[:, 0])
     # a 15 s drive sees a short stretch of the 20 s correlated part: loose bounds
     assert 0.01 < np.std(d) < 0.15 and np.abs(d).max() < 0.4
+
+
+def test_a_gnss_bias_shifts_every_pose_by_one_vector_and_changes_nothing_else(tmp_path: Path) -> None:
+    xodr = tiny_map(tmp_path / "m.xodr", 400.0)
+    plain, biased = tmp_path / "plain", tmp_path / "biased"
+    simulate(xodr, plain, SimOptions(length_m=120.0, seed=5, traffic="low"))
+    simulate(xodr, biased, SimOptions(length_m=120.0, seed=5, traffic="low", gnss_bias_m=1.5))
+    for rel in ("scans/000005.pcd", "truth/poses.csv", "truth/objects.csv"):
+        assert (plain / rel).read_bytes() == (biased / rel).read_bytes(), rel
+    d = load_poses(biased / "poses.csv")[:, 1:4] - load_poses(plain / "poses.csv")[:, 1:4]
+    assert np.ptp(d, axis=0).max() < 2e-3  # one constant vector (csv rounding aside)
+    assert np.linalg.norm(d[:, :2].mean(axis=0)) == pytest.approx(1.5, abs=2e-3) and abs(d[:, 2]).max() < 1e-3
+    listed = json.loads((biased / "truth" / "route.json").read_text())["gnss_bias_m"]
+    assert np.allclose(listed, d[:, :2].mean(axis=0), atol=2e-3)
+    assert "gnss_bias_m" not in json.loads((plain / "truth" / "route.json").read_text())
 
 
 # ---------------------------------------------------------------------------------------------- route and laps

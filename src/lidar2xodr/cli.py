@@ -371,6 +371,8 @@ def simulate(
     traffic: Traffic = typer.Option(Traffic.mid, "--traffic", help="Density of the other road users."),
     gnss_noise_m: float = typer.Option(0.05, "--gnss-noise-m", help="GNSS sigma per horizontal axis (m)."),
     gnss_outage: bool = typer.Option(False, "--gnss-outage", help="Add GNSS outages with INS drift."),
+    gnss_bias_m: float = typer.Option(0.0, "--gnss-bias-m", help="A constant GNSS offset of this length (m) for "
+                                      "the whole drive, in a direction drawn from the seed."),
     seed: int = typer.Option(0, "--seed", help="Seed of every random choice."),
     rosbag: bool = typer.Option(False, "--rosbag", help="Also write drive.mcap (ROS 2)."),
     preview: bool = typer.Option(False, "--preview", help="Also write a close-up per 200 m under preview/."),
@@ -382,7 +384,8 @@ def simulate(
 
     prepare_outputs([], [(out_dir, "drive")])
     opts = _sim_options(start_road=start_road, speed_kmh=speed_kmh, length_m=length_m, sensor=sensor.value,
-                        traffic=traffic.value, gnss_noise_m=gnss_noise_m, gnss_outage=gnss_outage, seed=seed,
+                        traffic=traffic.value, gnss_noise_m=gnss_noise_m, gnss_outage=gnss_outage,
+                        gnss_bias_m=gnss_bias_m, seed=seed,
                         rosbag=rosbag, preview=preview, roadside=roadside)
     s = run_simulation(map_path, out_dir, opts, console=console)
     out.print(f"wrote {s.out_dir}: {s.scans} scans, {s.points:,} points, {s.length_m / 1000:.2f} km in "

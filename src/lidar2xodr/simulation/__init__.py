@@ -35,6 +35,9 @@ class SimOptions(BaseModel):
     traffic: Literal["none", "low", "mid", "high"] = "mid"
     gnss_noise_m: float = Field(0.05, ge=0.0, le=20.0, description="per-axis horizontal GNSS sigma")
     gnss_outage: bool = False
+    gnss_bias_m: float = Field(0.0, ge=0.0, le=20.0, description="constant horizontal GNSS offset of this length for "
+                               "the whole drive, its direction drawn from the seed (GNSS without corrections: a "
+                               "metre or two, different every day); listed in truth/route.json")
     seed: int = 0
     rosbag: bool = False
     preview: bool = False

@@ -93,7 +93,7 @@ def run(map_path: Path, out_dir: Path, opts: SimOptions, console: Console | None
         outages = _poses(tmp, ego, geo, opts, bag)
         W.copy_map(map_path, tmp / "truth" / "map.xodr")
         W.write_json(tmp / "truth" / "route.json", _route_json(p.route, agents, ego, outages, p.length, duration,
-                                                               preset.period, n_scans))
+                                                               preset.period, n_scans, gnss_bias(opts)))
         W.write_yaml(tmp / "meta.yaml", _meta(preset, geo, opts, map_path))
         title = (f"{map_path.name}: {p.length / 1000:.2f} km, {duration:.0f} s, {opts.sensor}, traffic "
                  f"{opts.traffic}, seed {opts.seed} (points below sensor height, reflectivity)")
@@ -146,6 +146,7 @@ def _poses(tmp: Path, ego: PoseTrack, geo: W.Geo, opts: SimOptions, bag: W.BagWr
     idx = np.arange(0, len(ego.pos), int(round(ego.hz / POSE_RATE_HZ)))
     t = ego.times[idx]
     err, outages = pose_errors(t, opts.gnss_noise_m, opts.gnss_outage, _stream(opts.seed, 4))
+    err[:, :2] += gnss_bias(opts)
     true_xyz, true_rpy = ego.pos[idx], W.rpy(ego.rot[idx])
     meas_xyz, meas_rpy = true_xyz + err[:, :3], true_rpy + err[:, 3:]
     (tmp / "poses.csv").write_text(W.poses_csv(t, meas_xyz, meas_rpy, geo), encoding="utf-8")
@@ -158,6 +159,17 @@ def _poses(tmp: Path, ego: PoseTrack, geo: W.Geo, opts: SimOptions, bag: W.BagWr
             bag.pose(float(tj), meas_xyz[j], q[j], lla, max(opts.gnss_noise_m, 0.01))
         bag.close()
     return outages
+
+
+def gnss_bias(opts: SimOptions) -> np.ndarray:
+    """The drive's constant horizontal GNSS offset (x, y): `gnss_bias_m` long, its direction drawn from the seed.
+
+    A stream of its own, so a drive without a bias is the same bytes as before the option existed.
+    """
+    if opts.gnss_bias_m <= 0:
+        return np.zeros(2)
+    angle = float(_stream(opts.seed, 6).uniform(0.0, 2.0 * np.pi))
+    return opts.gnss_bias_m * np.array([np.cos(angle), np.sin(angle)])
 
 
 def _progress(console: Console | None):
@@ -239,7 +251,8 @@ def _closeup_index(ego: PoseTrack, traffic: TrafficPoses) -> int:
     return best_k
 
 
-def _route_json(route, agents, ego, outages, length: float, duration: float, period: float, n_scans: int) -> dict:
+def _route_json(route, agents, ego, outages, length: float, duration: float, period: float, n_scans: int,
+                bias: np.ndarray) -> dict:
     legs = []
     for leg in route.legs:
         if leg.u0 >= length:
@@ -279,6 +292,7 @@ def _route_json(route, agents, ego, outages, length: float, duration: float, per
         "ego_lanes": lanes,
         "lane_changes": changes,
         "gnss_outages": [[round(a, 3), round(b, 3)] for a, b in outages],
+        **({"gnss_bias_m": [round(float(v), 4) for v in bias]} if np.any(bias) else {}),
     }
 
 

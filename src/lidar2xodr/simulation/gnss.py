@@ -10,6 +10,8 @@ Decisions:
   last 10 %). During an outage the INS dead-reckons: the error grows as v0 * t + a * t^2 / 2
   (v0 ~ 0.05 m/s, a ~ 0.01 m/s^2 per axis, yaw drift ~ 0.1 deg/min) and converges back within
   3 s once satellites are back. Outage intervals are listed in truth/route.json.
+- --gnss-bias-m: on top, a constant horizontal offset for the whole drive (`drive.gnss_bias`),
+  what GNSS without correction services gives on one day; listed in truth/route.json.
 """
 
 from __future__ import annotations
