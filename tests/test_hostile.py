@@ -523,6 +523,31 @@ def test_sigterm_during_a_slow_checker_ends_it_at_once(tmp_path: Path, assets: d
     assert _wait(lambda: not any(_alive(k) for k in slow), 10), "the checker outlived check"
 
 
+def test_a_child_started_after_the_interrupt_is_killed_at_once() -> None:
+    """A thread that runs two children in a row must not start the second one unkilled after the
+    interrupt killed the first (netconvert `--version`, then the conversion: CI waited 30 s for it)."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from lidar2xodr import lifetime
+
+    first_killed = threading.Event()
+
+    def two_children() -> list[int]:
+        codes = [lifetime.run_child(["sleep", "20"], timeout=60).returncode]
+        first_killed.set()
+        return [*codes, lifetime.run_child(["sleep", "20"], timeout=60).returncode]
+
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        job = pool.submit(two_children)
+        with pytest.raises(KeyboardInterrupt), lifetime.children_killed_on_exit(pool):
+            assert _wait(lambda: bool(lifetime._CHILDREN), 30), "the first child never started"
+            raise KeyboardInterrupt
+        assert first_killed.is_set()
+    assert job.result() == [-signal.SIGKILL, -signal.SIGKILL]
+    assert not lifetime._STOPPING[0]
+
+
 def test_sigkill_takes_the_checker_along_and_the_next_run_cleans_up(tmp_path: Path,
                                                                      assets: dict[str, Path]) -> None:
     import tempfile

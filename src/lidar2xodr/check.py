@@ -370,7 +370,7 @@ def check_file(path: Path, readers: bool = True, cfg: CheckConfig | None = None)
     venv = find_qc_venv()
     result: dict[str, Any] = {"file": str(path), "kind": suffix[1:]}
     reasons = []
-    with ThreadPoolExecutor(max_workers=5) as pool, children_killed_on_exit():
+    with ThreadPoolExecutor(max_workers=5) as pool, children_killed_on_exit(pool):
         asam = pool.submit(run_asam_checker, path, venv)
         jobs: dict[str, Future] = {}
         if suffix == ".xodr" and readers:

@@ -19,6 +19,7 @@ import signal
 import subprocess
 import threading
 from collections.abc import Iterator, Sequence
+from concurrent.futures import Executor
 from types import FrameType
 
 _PR_SET_PDEATHSIG = 1
@@ -70,6 +71,7 @@ def child_preexec() -> functools.partial[None]:
 
 _CHILDREN: set[subprocess.Popen[str]] = set()
 _CHILDREN_LOCK = threading.Lock()
+_STOPPING = [0]  # > 0 while a block of `children_killed_on_exit` is being left by an exception
 
 
 def run_child(cmd: Sequence[str], *, timeout: float, env: dict[str, str] | None = None,
@@ -84,6 +86,8 @@ def run_child(cmd: Sequence[str], *, timeout: float, env: dict[str, str] | None 
                           preexec_fn=child_preexec()) as proc:
         with _CHILDREN_LOCK:
             _CHILDREN.add(proc)
+            if _STOPPING[0]:
+                proc.kill()
         try:
             out, err = proc.communicate(timeout=timeout)
         except subprocess.TimeoutExpired:
@@ -106,10 +110,23 @@ def kill_children() -> None:
 
 
 @contextlib.contextmanager
-def children_killed_on_exit() -> Iterator[None]:
-    """Leaving the block by an exception (Ctrl-C, SIGTERM, an error) kills the children it started."""
+def children_killed_on_exit(pool: Executor | None = None) -> Iterator[None]:
+    """Leaving the block by an exception (Ctrl-C, SIGTERM, an error) kills the children it started.
+
+    With `pool`, its threads are waited for here, and every child they start meanwhile is killed at
+    once: a thread that runs two children in a row (netconvert's `--version`, then the conversion)
+    must not start the second one after the first was killed, nor keep the exit waiting for it.
+    """
     try:
         yield
     except BaseException:
-        kill_children()
+        with _CHILDREN_LOCK:
+            _STOPPING[0] += 1
+        try:
+            kill_children()
+            if pool is not None:
+                pool.shutdown(wait=True, cancel_futures=True)
+        finally:
+            with _CHILDREN_LOCK:
+                _STOPPING[0] -= 1
         raise
