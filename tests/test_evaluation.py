@@ -144,6 +144,26 @@ def test_shared_highway_shifted_sideways(shared_data: Path, tmp_path: Path) -> N
     assert m["centerline"]["rmse_m"] == pytest.approx(0.30, abs=1e-3)
 
 
+def test_align_takes_out_a_rigid_offset_and_reports_it(tmp_path: Path) -> None:
+    """`compare --align`: a map moved 0.8 m / -1.1 m (a GNSS bias) has its shape measured, its offset reported."""
+    ref = _map(tmp_path / "ref.xodr", _both(geom=ARC))
+    gen = _map(tmp_path / "gen.xodr", _both(geom=ARC, x=0.8, y=-1.1))
+    from lidar2xodr.config import FusionConfig
+
+    plain = compare_maps(gen, ref, CFG)
+    assert plain["boundaries"]["mean_m"] > 0.5 and plain["alignment"] is None
+    m = compare_maps(gen, ref, CFG, FusionConfig())
+    a = m["alignment"]
+    assert a["dx_m"] == pytest.approx(-0.8, abs=0.1) and a["dy_m"] == pytest.approx(1.1, abs=0.1), a
+    assert a["inlier_share"] > 0.95 and abs(a["yaw_deg"]) < 0.05
+    assert m["boundaries"]["rmse_m"] < 0.02 and m["lane_count_agreement"] == pytest.approx(1.0, abs=0.01)
+    assert "moved rigidly" in m["frame"]
+    out = tmp_path / "m.json"
+    res = CliRunner().invoke(app, ["compare", str(gen), str(ref), "--align", "--json", str(out)])
+    assert res.exit_code == 0, res.output
+    assert json.loads(out.read_text())["boundaries"]["rmse_m"] == pytest.approx(m["boundaries"]["rmse_m"])
+
+
 def test_missing_lane_lowers_lane_count_agreement(tmp_path: Path) -> None:
     ref = _map(tmp_path / "ref.xodr", _both())
     gen = _map(tmp_path / "gen.xodr", _road("1", 300, right=(MEDIAN, DRV, ("shoulder", 3.5)),

@@ -52,6 +52,38 @@ def test_build_check_compare(demo_drive: tuple[Path, Path], tmp_path: Path) -> N
     assert (tmp_path / "map.xosc").exists()
 
 
+def test_two_drives_are_fused_onto_the_anchor_and_the_biased_one_reported(demo_drive: tuple[Path, Path],
+                                                                          tmp_path: Path) -> None:
+    """`build DRIVE1 DRIVE2 --anchor 1`: the second drive's 1.2 m GNSS bias is found from the markings
+    and taken out, so the fused map is where drive 1 puts it and its lines are not doubled."""
+    from typer.testing import CliRunner
+
+    from lidar2xodr.cli import app
+    from lidar2xodr.simulation import SimOptions, simulate
+
+    truth, drive = demo_drive
+    biased = tmp_path / "biased"
+    simulate(truth, biased, SimOptions(length_m=700.0, seed=5, traffic="low", gnss_bias_m=1.2))
+    bias = np.array(json.loads((biased / "truth" / "route.json").read_text())["gnss_bias_m"])
+    out = tmp_path / "fused.xodr"
+    res = CliRunner().invoke(app, ["build", str(drive), str(biased), "-o", str(out), "--anchor", "1",
+                                   "--reference", str(truth)])
+    assert res.exit_code == 0, res.output
+    assert "drive 2" in res.output and "offset" in res.output
+    single = tmp_path / "single.xodr"
+    alone = BuildPipeline(drive, single, reference=truth).run().summary["metrics"]["boundaries"]["rmse_m"]
+    pipe = BuildPipeline([drive, biased], tmp_path / "again.xodr", reference=truth,
+                         config=Config(fusion={"anchor": 1}))
+    result = pipe.run()
+    first, second = result.summary["fusion"]
+    assert (first["dx_m"], first["dy_m"]) == (0.0, 0.0)
+    # the bias is in the biased drive's poses; across the road the markings fix it to centimetres
+    assert np.hypot(second["dx_m"] + bias[0], second["dy_m"] + bias[1]) < 0.3, (second, bias)
+    fused = result.summary["metrics"]["boundaries"]["rmse_m"]
+    assert fused < alone + 0.05, f"fusing made the map worse: {fused:.3f} m against {alone:.3f} m alone"
+    assert (tmp_path / "again.xodr").read_bytes() == out.read_bytes()
+
+
 def test_build_into_a_new_folder(demo_drive: tuple[Path, Path], tmp_path: Path) -> None:
     _, drive = demo_drive
     out = tmp_path / "new" / "deeper" / "map.xodr"

@@ -217,15 +217,18 @@ def compare(
     reference: Path = _arg(help="The reference .xodr (ground truth)."),
     json_out: Path | None = _opt(None, "--json", help="Write the metrics as JSON."),
     config: Path | None = ConfigOpt,
+    align: bool = typer.Option(False, "--align", help="First move the generated map rigidly (2D) onto the reference "
+                               "(its markings' registration, within fusion.search_radius_m): the shape without a "
+                               "GNSS bias."),
 ) -> None:
     """The paper's lateral distance between two maps: RMSE, mean, sigma, lane count, widths, coverage."""
     from lidar2xodr.config import Config
     from lidar2xodr.evaluation import compare_maps, print_metrics
 
     prepare_outputs([json_out])
-    cfg = Config.load(config).evaluation
+    full = Config.load(config)
     with _busy(f"comparing {generated} with {reference}"):
-        metrics = compare_maps(generated, reference, cfg)
+        metrics = compare_maps(generated, reference, full.evaluation, full.fusion if align else None)
     if json_out:
         write_json(json_out, metrics)
     print_metrics(metrics, out)
@@ -256,7 +259,8 @@ def check(
 @app.command(epilog="Example: lidar2xodr build drive/ -o map.xodr --report report/ --scenario map.xosc")
 @_clean_errors
 def build(
-    drive: Path = _arg(help="A drive: drive directory, scan folder, KITTI, bag/MCAP, aiMotive."),
+    drive: list[Path] = _arg(metavar="DRIVE...", help="One or more drives (drive directory, scan folder, KITTI, "
+                             "bag/MCAP, aiMotive): several are aligned by their markings and fused into one map."),
     output: Path = _opt(..., "--output", "-o", help="The OpenDRIVE map to write."),
     report: Path | None = _opt(None, "--report", help="Write an HTML report with pictures here."),
     odometry: Odometry | None = _opt(None, "--odometry", help="Pose source (default: from config, auto)."),
@@ -276,6 +280,8 @@ def build(
     lanelet2: Path | None = _opt(None, "--lanelet2", help="Also write the map as Lanelet2 (.osm)."),
     geojson: Path | None = _opt(None, "--geojson", help="Also write the map as GeoJSON (WGS84)."),
     scheduler: str | None = SchedulerOpt,
+    anchor: int | None = _opt(None, "--anchor", help="With several drives: the one (1 = first) whose GNSS places "
+                              "the map, e.g. an RTK drive (default: the mean of all drives' GNSS)."),
 ) -> None:
     """The whole pipeline: extract markings, build lanes, export a checked OpenDRIVE map."""
     from lidar2xodr.config import Config
@@ -286,6 +292,11 @@ def build(
         cfg = cfg.model_copy(update={"extraction": cfg.extraction.model_copy(update={"odometry": odometry.value})})
     if scheduler is not None:
         cfg = cfg.model_copy(update={"extraction": _with_scheduler(cfg.extraction, scheduler)})
+    if anchor is not None:
+        if not 1 <= anchor <= len(drive):
+            raise InputError("--anchor", f"must name one of the {len(drive)} drive(s) given, 1 to {len(drive)} "
+                                         f"(got {anchor})")
+        cfg = cfg.model_copy(update={"fusion": cfg.fusion.model_copy(update={"anchor": anchor})})
     if reference is not None and not reference.is_file():
         raise InputError(reference, "reference map not found")
     result = BuildPipeline(

@@ -430,6 +430,28 @@ class InterchangeConfig(_Section):
                                   "8 is about 1 mm, RFC 7946's 6 (10 cm) would move lane borders visibly")
 
 
+class FusionConfig(_Section):
+    """Several drives in one build (fusion.py): each aligned to the drives before it by its markings."""
+
+    search_radius_m: float = Field(3.0, gt=0, description="ours: largest horizontal GNSS disagreement between two "
+                                   "drives that the alignment searches (GNSS without corrections: 1-2 m)")
+    coarse_step_m: float = Field(0.5, gt=0, description="ours: grid step of the first offset search")
+    fine_step_m: float = Field(0.1, gt=0, description="ours: grid step of the second search, around the first's best")
+    inlier_m: float = Field(0.15, gt=0, description="ours: a marking point matches when a fused one is this close "
+                            "(about a marking's width)")
+    max_correspondence_m: float = Field(0.3, gt=0, description="ours: ICP pairs points at most this far apart "
+                                        "after the grid search")
+    voxel_m: float = Field(0.25, gt=0, description="ours: the alignment uses one marking point per cell of this size")
+    max_search_points: int = Field(8000, ge=100, description="ours: the grid search scores at most about this many "
+                                   "points (an even sample along the drive)")
+    min_overlap_points: int = Field(200, ge=1, description="ours: a drive sharing fewer sampled marking points with "
+                                    "the drives before (within search_radius_m) is left out: no overlap")
+    min_inlier_share: float = Field(0.3, ge=0, le=1, description="ours: a drive whose aligned markings match fewer "
+                                    "of its points than this is left out (it cannot be aligned)")
+    anchor: int | None = Field(None, ge=1, description="ours: the drive (1 = the first given) whose GNSS places the "
+                               "fused map, e.g. the one recorded with RTK corrections; none: the mean of all drives")
+
+
 class Config(_Section):
     extraction: ExtractionConfig = ExtractionConfig()
     markings: MarkingsConfig = MarkingsConfig()
@@ -440,6 +462,7 @@ class Config(_Section):
     report: ReportConfig = ReportConfig()
     check: CheckConfig = CheckConfig()
     interchange: InterchangeConfig = InterchangeConfig()
+    fusion: FusionConfig = FusionConfig()
 
     @classmethod
     def load(cls, path: str | Path | None) -> Config:

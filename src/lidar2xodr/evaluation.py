@@ -51,7 +51,10 @@ Matching rule (the README quotes this):
 
 Frames: when both maps carry a geoReference and they differ, the generated map is projected into the
 reference's frame with pyproj (headings rotated with it); otherwise both are taken to share one frame
-(`frame` in the result says which). Elevation is not part of the lateral distance.
+(`frame` in the result says which). Elevation is not part of the lateral distance. `compare --align`
+then moves the generated map rigidly in 2D onto the reference (registration of the two maps' lane
+boundaries, as fusion.py aligns drives; `alignment` in the result): the map's shape without the
+drive's GNSS bias, as the paper's drive-to-drive protocol compares drives of unbiased GNSS.
 
 7. `elevation`: for every matched generated centre sample (rule 2), its z minus the reference centre
    line's z at the foot of the perpendicular (linear between the two reference samples around it):
@@ -86,7 +89,7 @@ from rich.console import Console
 from rich.table import Table
 from scipy.spatial import cKDTree
 
-from lidar2xodr.config import EvaluationConfig
+from lidar2xodr.config import EvaluationConfig, FusionConfig
 from lidar2xodr.errors import InputError
 from lidar2xodr.lane_graph import lane_graph_agreement
 
@@ -370,13 +373,50 @@ def _load(path: Path) -> Any:
     return OpenDriveMap.load(path)
 
 
-def compare_maps(generated: Path, reference: Path, cfg: EvaluationConfig) -> dict[str, Any]:
-    """Metrics of a generated map against a reference map (rules in the module docstring)."""
+def _rigid_alignment(gen: Carriageways, ref: Carriageways, transform: Any, align: FusionConfig
+                     ) -> tuple[Any, dict[str, float]]:
+    """`transform` followed by the 2D rigid motion that puts the generated boundaries on the reference's.
+
+    The registration is fusion.py's (grid search within `align.search_radius_m`, then ICP): it takes
+    out a constant GNSS bias or an odometry drive's unknown placement, so what remains is the
+    map's shape. Heights are left as they are.
+    """
+    from lidar2xodr.fusion import align as register
+
+    def xyz(cw: Carriageways) -> np.ndarray:
+        return np.column_stack([cw.boundaries.xy, np.zeros(len(cw.boundaries.xy))])
+
+    t, share, _ = register(xyz(ref), xyz(gen), align)
+    rot, shift = t[:2, :2], t[:2, 3]
+    yaw = math.atan2(rot[1, 0], rot[0, 0])
+
+    def apply(border_xy: dict[int, np.ndarray], ref_xy: np.ndarray, hdg: np.ndarray
+              ) -> tuple[dict[int, np.ndarray], np.ndarray]:
+        if transform is not None:
+            border_xy, hdg = transform(border_xy, ref_xy, hdg)
+        return {k: v @ rot.T + shift for k, v in border_xy.items()}, _wrap(hdg + yaw)
+
+    return apply, {"dx_m": float(shift[0]), "dy_m": float(shift[1]), "yaw_deg": math.degrees(yaw),
+                   "inlier_share": share}
+
+
+def compare_maps(generated: Path, reference: Path, cfg: EvaluationConfig, align: FusionConfig | None = None
+                 ) -> dict[str, Any]:
+    """Metrics of a generated map against a reference map (rules in the module docstring).
+
+    With `align`, the generated map is first moved rigidly in 2D onto the reference (`_rigid_alignment`).
+    """
     generated, reference = Path(generated), Path(reference)
     gen_map, ref_map = _load(generated), _load(reference)
     transform, frame = _frame_transform(gen_map, ref_map, generated)
     gen = carriageways(gen_map, cfg.sample_step_m, transform)
     ref = carriageways(ref_map, cfg.sample_step_m)
+    alignment = None
+    if align is not None and len(gen.boundaries.xy) and len(ref.boundaries.xy):
+        transform, alignment = _rigid_alignment(gen, ref, transform, align)
+        gen = carriageways(gen_map, cfg.sample_step_m, transform)
+        frame += (f"; then moved rigidly onto the reference: x {alignment['dx_m']:+.2f} m, y {alignment['dy_m']:+.2f}"
+                  f" m, yaw {alignment['yaw_deg']:+.3f} deg")
     for cw, path in ((gen, generated), (ref, reference)):
         if len(cw.centre.xy) == 0:
             raise InputError(path, f"no driving lanes to evaluate (lane types counted: {sorted(DRIVING_TYPES)})")
@@ -410,6 +450,7 @@ def compare_maps(generated: Path, reference: Path, cfg: EvaluationConfig) -> dic
         "reference_eval_length_m": ref_length,
         "lane_graph": lane_graph,
         "frame": frame,
+        "alignment": alignment,
         "settings": {
             "sample_step_m": cfg.sample_step_m,
             "near_m": cfg.near_m,

@@ -63,7 +63,7 @@ class BuildPipeline:
 
     def __init__(
         self,
-        drive: Path,
+        drive: Path | list[Path],
         out: Path,
         config: Config | None = None,
         data_format: str | None = None,
@@ -79,7 +79,9 @@ class BuildPipeline:
         lanelet2: Path | None = None,
         geojson: Path | None = None,
     ) -> None:
-        self.drive = Path(drive)
+        self.drives = [Path(d) for d in drive] if isinstance(drive, list | tuple) else [Path(drive)]
+        self.drive = self.drives[0]  # the drive whose traffic gives lane directions and the scenario
+        self.fusion: Any = None  # FusionReport when several drives are fused
         self.out = Path(out)
         self.config = config or Config()
         self.data_format = data_format
@@ -108,16 +110,34 @@ class BuildPipeline:
         self.timings[name] = time.perf_counter() - t0
 
     def extract(self) -> MarkingCloud:
+        """The drive's marking cloud; with several drives, each one's, aligned and fused (fusion.py)."""
         from lidar2xodr.datasets import open_dataset
-        from lidar2xodr.extraction import extract_markings
+        from lidar2xodr.extraction import ExtractionReport, extract_markings
 
-        dataset = open_dataset(self.drive, self.data_format, **self.reader_options)
+        datasets = [open_dataset(d, self.data_format, **self.reader_options) for d in self.drives]
+        clouds, modes = [], []
         with self._stage("extract", spinner=False), progress_bar(self.console) as bar:
-            task = bar.add_task("extract", total=len(dataset))
-            cloud = extract_markings(dataset, self.config.extraction, progress=lambda n=1: bar.advance(task, n))
-        if len(cloud.xyz) == 0:
-            raise InputError(self.drive, "no lane markings found in the drive (nothing bright on the ground)")
+            for k, (drive, dataset) in enumerate(zip(self.drives, datasets, strict=True)):
+                label = "extract" if len(self.drives) == 1 else f"extract {k + 1}/{len(self.drives)}"
+                task = bar.add_task(label, total=len(dataset))
+                rep = ExtractionReport()
+                cloud = extract_markings(dataset, self.config.extraction, report=rep,
+                                         progress=lambda n=1, t=task: bar.advance(t, n))
+                if len(cloud.xyz) == 0:
+                    raise InputError(drive, "no lane markings found in the drive (nothing bright on the ground)")
+                clouds.append(cloud)
+                modes.append(rep.odometry)
+        if len(clouds) == 1:
+            return clouds[0]
+        from lidar2xodr.fusion import fuse
+
+        with self._stage("fuse"):
+            cloud, self.fusion = fuse(clouds, [str(d) for d in self.drives], modes, self.config.fusion)
         return cloud
+
+    def _ego(self, cloud: MarkingCloud) -> Any:
+        """The trajectory of the drive whose objects are used (the first), in the map's frame; None if left out."""
+        return cloud.trajectory if self.fusion is None else self.fusion.trajectories[0]
 
     def lanes(self, cloud: MarkingCloud) -> tuple[LaneModel, RoadNetwork]:
         """The measured carriageway and, where it splits or merges, the roads joined by junctions."""
@@ -140,13 +160,16 @@ class BuildPipeline:
 
         if not self.config.lanes.traffic_directions:
             return []
+        ego = self._ego(cloud)
+        if ego is None:
+            return [f"the object list of {self.drive} was not used for lane directions: the drive was left out"]
         try:
-            self._tracks = load_tracks(self.drive, cloud.trajectory, cfg=self.config)
+            self._tracks = load_tracks(self.drive, ego, cfg=self.config)
         except InputError as exc:
             if exc.problem.startswith(("no object tracks found", "unknown track format")):
                 return []
             return [f"the object list was not used for lane directions: {exc}"]
-        return apply_traffic_directions(model, self._tracks.tracks, cloud.trajectory, self.config.lanes)
+        return apply_traffic_directions(model, self._tracks.tracks, ego, self.config.lanes)
 
     def run(self) -> BuildResult:
         """The whole build; its outputs appear together at the end, or none of them."""
@@ -165,6 +188,8 @@ class BuildPipeline:
         if self.keep:
             self._keep(cloud, network)
         result = BuildResult(map_path=self.out, timings=self.timings, check=verdict, warnings=list(network.warnings))
+        if self.fusion is not None:
+            result.warnings[:0] = self.fusion.warnings
         result.summary = {
             "length_m": float(model.s[-1] - model.s[0]) if len(model.s) else 0.0,
             "boundaries": len(model.boundaries),
@@ -179,6 +204,9 @@ class BuildPipeline:
             "scans": int(len(cloud.planes.times)),
             "export": summary.__dict__ if hasattr(summary, "__dict__") else str(summary),
         }
+        if self.fusion is not None:
+            result.summary["fusion"] = [d.__dict__ for d in self.fusion.drives]
+            result.summary["fusion_lines"] = [d.line() for d in self.fusion.drives]
         result.warnings.extend(self._interchange(result.summary))
         scenario_info = None
         if self.scenario:
@@ -233,9 +261,12 @@ class BuildPipeline:
         from lidar2xodr.tracks import load_tracks
 
         assert self.scenario is not None
-        tracks = self._tracks if self._tracks is not None else load_tracks(self.drive, cloud.trajectory)
-        summary = export_scenario(cloud.trajectory, tracks, self.out, self.scenario, self.config)
-        return {"path": self.scenario, "summary": summary, "tracks": tracks, "ego": cloud.trajectory}
+        ego = self._ego(cloud)
+        if ego is None:
+            raise InputError(self.drive, "--scenario: the scenario is of the first drive, which was left out")
+        tracks = self._tracks if self._tracks is not None else load_tracks(self.drive, ego)
+        summary = export_scenario(ego, tracks, self.out, self.scenario, self.config)
+        return {"path": self.scenario, "summary": summary, "tracks": tracks, "ego": ego}
 
     def _keep(self, cloud: MarkingCloud, network: RoadNetwork) -> None:
         from lidar2xodr.branches import save_network
@@ -332,6 +363,8 @@ def print_summary(result: BuildResult, console: Console) -> None:
     table.add_row("length", f"{s.get('length_m', 0.0):.0f} m")
     table.add_row("lanes per section", ", ".join(str(n) for n in s.get("sections", [])))
     table.add_row("marking points / scans", f"{s.get('marking_points', 0):,} / {s.get('scans', 0):,}")
+    for k, line in enumerate(s.get("fusion_lines", [])):
+        table.add_row(f"drive {k + 1}", escape(line))
     for stage, sec in result.timings.items():
         table.add_row(f"time {stage}", f"{sec:.2f} s")
     # the verdict is the ASAM checker's and continuity's; each reader says for itself whether it read the map
