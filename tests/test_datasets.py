@@ -174,6 +174,28 @@ def test_nonexistent_and_empty_inputs(tmp_path: Path) -> None:
         open_dataset(tmp_path / "empty", "folder")
 
 
+def test_a_folder_of_drives_names_its_drives_and_a_drive_twice_is_refused(small_drive, tmp_path: Path) -> None:
+    from lidar2xodr.datasets import drives_in
+
+    fleet = tmp_path / "fleet"
+    b, a = write_drive(small_drive, fleet / "tuesday"), write_drive(small_drive, fleet / "monday")
+    (fleet / "notes").mkdir()
+    (fleet / ".cache").mkdir()
+    assert drives_in([fleet]) == [a, b]
+    assert drives_in([b, a]) == [b, a]
+    with pytest.raises(InputError, match="given twice") as err:
+        drives_in([fleet, a])
+    assert str(err.value).startswith(str(a))
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match="no scans found") as err:
+        drives_in([tmp_path / "empty"])
+    assert "folder of drives" not in str(err.value)
+    with pytest.raises(InputError, match="no scans found.*nor is any of its folders a drive"):
+        drives_in([tmp_path])  # holds fleet/ and empty/, neither a drive
+    with pytest.raises(InputError, match="no such file"):
+        drives_in([tmp_path / "missing"])
+
+
 # --- folders of scan files --------------------------------------------------------------------
 
 

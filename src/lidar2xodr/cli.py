@@ -260,7 +260,8 @@ def check(
 @_clean_errors
 def build(
     drive: list[Path] = _arg(metavar="DRIVE...", help="One or more drives (drive directory, scan folder, KITTI, "
-                             "bag/MCAP, aiMotive): several are aligned by their markings and fused into one map."),
+                             "bag/MCAP, aiMotive) or folders of drives: several are aligned by their markings and "
+                             "fused into one map."),
     output: Path = _opt(..., "--output", "-o", help="The OpenDRIVE map to write."),
     report: Path | None = _opt(None, "--report", help="Write an HTML report with pictures here."),
     odometry: Odometry | None = _opt(None, "--odometry", help="Pose source (default: from config, auto)."),
@@ -292,6 +293,10 @@ def build(
         cfg = cfg.model_copy(update={"extraction": cfg.extraction.model_copy(update={"odometry": odometry.value})})
     if scheduler is not None:
         cfg = cfg.model_copy(update={"extraction": _with_scheduler(cfg.extraction, scheduler)})
+    if data_format is None:
+        from lidar2xodr.datasets import drives_in
+
+        drive = drives_in(drive)
     if anchor is not None:
         if not 1 <= anchor <= len(drive):
             raise InputError("--anchor", f"must name one of the {len(drive)} drive(s) given, 1 to {len(drive)} "

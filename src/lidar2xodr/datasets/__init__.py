@@ -16,7 +16,7 @@ from lidar2xodr.errors import InputError
 
 FORMATS = ("drive", "aimotive", "kitti_raw", "rosbag", "folder")
 
-__all__ = ["FORMATS", "Dataset", "ReadStats", "detect_format", "open_dataset"]
+__all__ = ["FORMATS", "Dataset", "ReadStats", "detect_format", "drives_in", "open_dataset"]
 
 
 def detect_format(path: Path) -> str:
@@ -45,6 +45,40 @@ def detect_format(path: Path) -> str:
         return "folder"
     raise InputError(path, "no scans found: expected meta.yaml, dynamic/raw-revolutions/, velodyne_points/data/, "
                      "a ROS bag, or scan files (.pcd .las .laz .ply .bin .npy)")
+
+
+def drives_in(paths: list[Path]) -> list[Path]:
+    """The drives the paths name: each path itself, or, for a folder that is no drive, its sub-folders
+    that are (sorted by name: `build fleet/` fuses every drive recorded into fleet/).
+
+    A path named twice is an error: the same markings fused twice would only weigh that drive double.
+    """
+    out: list[Path] = []
+    for path in map(Path, paths):
+        try:
+            detect_format(path)
+            found = [path]
+        except InputError as exc:
+            try:
+                subs = sorted(p for p in path.iterdir() if p.is_dir() and not p.name.startswith("."))
+            except OSError:
+                subs = []
+            found = []
+            for sub in subs:
+                try:
+                    detect_format(sub)
+                except InputError:
+                    continue
+                found.append(sub)
+            if not found:
+                if subs:
+                    raise InputError(path, f"{exc.problem}; nor is any of its folders a drive") from None
+                raise
+        for drive in found:
+            if drive.resolve() in {d.resolve() for d in out}:
+                raise InputError(drive, "this drive is given twice")
+            out.append(drive)
+    return out
 
 
 def open_dataset(
