@@ -79,15 +79,17 @@ def test_a_drive_of_another_road_and_an_odometry_drive_are_left_out_with_their_r
     elsewhere = _cloud(_markings(rng, 300.0, np.array([5000.0, 0.0, 0.0])))
     odometry = _cloud(_markings(rng, 300.0, np.zeros(3)))
     unplaced = _cloud(_markings(rng, 300.0, np.zeros(3)), origin=GeoOrigin())
-    fused, rep = fuse([here, elsewhere, odometry, unplaced], ["here", "elsewhere", "odo", "nogeo"],
-                      ["gnss", "gnss", "lidar", "gnss"], FusionConfig())
+    dark = _cloud(np.zeros((0, 3)))
+    fused, rep = fuse([here, elsewhere, odometry, unplaced, dark], ["here", "elsewhere", "odo", "nogeo", "dark"],
+                      ["gnss", "gnss", "lidar", "gnss", "gnss"], FusionConfig())
     assert len(fused.xyz) == len(here.xyz)
     assert rep.drives[0].left_out is None
     assert "no overlap" in rep.drives[1].left_out
     assert "LiDAR odometry" in rep.drives[2].left_out
     assert "no geodetic origin" in rep.drives[3].left_out
-    assert [w.split(":")[0] for w in rep.warnings] == ["drive elsewhere", "drive odo", "drive nogeo"]
-    assert rep.trajectories[0] is not None and rep.trajectories[1:] == [None, None, None]
+    assert "no lane markings" in rep.drives[4].left_out
+    assert [w.split(":")[0] for w in rep.warnings] == ["drive elsewhere", "drive odo", "drive nogeo", "drive dark"]
+    assert rep.trajectories[0] is not None and rep.trajectories[1:] == [None] * 4
 
 
 def test_markings_that_do_not_match_are_left_out() -> None:
@@ -105,6 +107,12 @@ def test_a_left_out_anchor_is_an_error_naming_it() -> None:
     with pytest.raises(InputError, match="anchor drive.*LiDAR odometry") as err:
         fuse([here, odometry], ["here", "odo"], ["gnss", "lidar"], FusionConfig(anchor=2))
     assert str(err.value).startswith("odo")
+
+
+def test_no_drive_with_markings_is_an_error_listing_each() -> None:
+    dark = _cloud(np.zeros((0, 3)))
+    with pytest.raises(InputError, match="no drive can be fused: a: left out .no lane markings.*b: left out"):
+        fuse([dark, dark], ["a", "b"], ["gnss", "gnss"], FusionConfig())
 
 
 def test_the_same_drives_give_the_same_cloud() -> None:

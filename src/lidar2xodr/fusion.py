@@ -231,6 +231,9 @@ def fuse(clouds: list[MarkingCloud], names: list[str], modes: list[str], cfg: Fu
     for cloud, name, mode in zip(clouds, names, modes, strict=True):
         entry = DriveOffset(name, points=len(cloud.xyz))
         rep.drives.append(entry)
+        if len(cloud.xyz) == 0:
+            entry.left_out = "no lane markings found in the drive (nothing bright on the ground)"
+            continue
         if mode == "lidar":
             entry.left_out = "placed by LiDAR odometry: no GNSS prior to align it by"
             continue
