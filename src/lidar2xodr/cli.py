@@ -27,8 +27,8 @@ from rich.console import Console
 from rich.markup import escape
 
 from lidar2xodr import __version__
-from lidar2xodr.errors import InputError, OutputError
-from lidar2xodr.fileio import prepare_outputs, staged_outputs
+from lidar2xodr.errors import InputError, OutputError, one_line
+from lidar2xodr.fileio import os_problem, prepare_outputs, staged_outputs
 
 app = typer.Typer(
     name="lidar2xodr",
@@ -93,11 +93,6 @@ def _arg(**kwargs: Any) -> Any:
     return typer.Argument(..., show_default=False, **kwargs)
 
 
-def one_line(text: object) -> str:
-    """A message as one line (multi-line YAML or checker errors included)."""
-    return " ".join(str(text).split())
-
-
 def _say(prefix: str, text: object) -> None:
     """One line on stderr; the text is escaped, so `[/data/run1]` is printed, not parsed as markup."""
     console.print(f"{prefix} {escape(one_line(text))}".rstrip(), highlight=False, soft_wrap=True)
@@ -139,7 +134,7 @@ def _busy(what: str) -> Iterator[None]:
 
 def _environment_problem(exc: OSError) -> str:
     where = exc.filename if exc.filename is not None else "output"
-    return f"{where}: {exc.strerror or exc}"
+    return f"{where}: {os_problem(exc)}"
 
 
 def _clean_errors(fn: F) -> F:

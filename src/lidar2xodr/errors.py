@@ -5,6 +5,11 @@ from __future__ import annotations
 from pathlib import Path
 
 
+def one_line(text: object) -> str:
+    """A message as one line (YAML, XML and checker errors span lines)."""
+    return " ".join(str(text).split())
+
+
 class InputError(Exception):
     """Input that cannot be used. `where` names the file (and element), `problem` says what is wrong."""
 

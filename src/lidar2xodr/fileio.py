@@ -87,7 +87,8 @@ def clean_stale(folder: str | Path) -> list[Path]:
     return removed
 
 
-def _problem(exc: OSError) -> str:
+def os_problem(exc: OSError) -> str:
+    """What went wrong, in words a user acts on (a full disk, a read-only file system, permissions)."""
     if exc.errno == errno.ENOSPC:
         return "no space left on the device"
     if exc.errno == errno.EROFS:
@@ -126,7 +127,7 @@ def check_output_dir(target: str | Path, kind: str) -> Path:
         try:
             entries = [p.name for p in target.iterdir()]
         except OSError as exc:
-            raise OutputError(target, f"cannot read the folder: {_problem(exc)}") from None
+            raise OutputError(target, f"cannot read the folder: {os_problem(exc)}") from None
         if entries and not _is_ours(target, kind, entries):
             raise OutputError(target, f"is a folder with files that are not a lidar2xodr {kind} (it has no "
                               f"{kind} marker): give a new or empty folder; nothing was changed")
@@ -250,7 +251,7 @@ def _commit_file(tmp: Path, target: Path) -> None:
         if tmp.parent.name.startswith(temp_prefix()):
             tmp.parent.rmdir()
     except OSError as exc:
-        raise OutputError(target, f"cannot write: {_problem(exc)}") from None
+        raise OutputError(target, f"cannot write: {os_problem(exc)}") from None
 
 
 @contextlib.contextmanager
@@ -271,7 +272,7 @@ def atomic_path(target: str | Path, suffix: str | None = None) -> Iterator[Path]
         try:
             yield tmp_path
         except OSError as exc:
-            raise OutputError(target, f"cannot write: {_problem(exc)}") from None
+            raise OutputError(target, f"cannot write: {os_problem(exc)}") from None
         if not tmp_path.is_file():
             raise OutputError(target, "nothing was written")
         if staged_set is not None:
@@ -326,7 +327,7 @@ def _commit_dir(tmp: Path, target: Path, kind: str) -> None:
             with contextlib.suppress(OSError):
                 (target / name).unlink()
     except OSError as exc:
-        raise OutputError(target, f"cannot write: {_problem(exc)}") from None
+        raise OutputError(target, f"cannot write: {os_problem(exc)}") from None
 
 
 
@@ -340,7 +341,7 @@ def _staging_dir(target: Path, staged_set: _Staged | None) -> tuple[Path, list[P
         return Path(tempfile.mkdtemp(prefix=f"{temp_prefix()}{target.name}.", dir=target.parent)), created
     except OSError as exc:
         _remove_empty(created)
-        raise OutputError(target, f"cannot write: {_problem(exc)}") from None
+        raise OutputError(target, f"cannot write: {os_problem(exc)}") from None
 
 @contextlib.contextmanager
 def atomic_dir(target: str | Path, kind: str = "report") -> Iterator[Path]:
@@ -356,7 +357,7 @@ def atomic_dir(target: str | Path, kind: str = "report") -> Iterator[Path]:
         try:
             yield tmp
         except OSError as exc:
-            raise OutputError(target, f"cannot write: {_problem(exc)}") from None
+            raise OutputError(target, f"cannot write: {os_problem(exc)}") from None
         if staged_set is not None:
             staged_set.moves.append((tmp, target, kind))
             keep = True
@@ -377,7 +378,7 @@ def temp_dir(folder: str | Path | None = None, kind: str = "") -> Iterator[Path]
     try:
         tmp = Path(tempfile.mkdtemp(prefix=temp_prefix(kind, hidden=folder is not None), dir=base))
     except OSError as exc:
-        raise OutputError(base, f"cannot create a temporary folder: {_problem(exc)}") from None
+        raise OutputError(base, f"cannot create a temporary folder: {os_problem(exc)}") from None
     try:
         yield tmp
     finally:

@@ -30,7 +30,7 @@ import numpy as np
 from lxml import etree
 from scipy.special import fresnel
 
-from lidar2xodr.errors import InputError
+from lidar2xodr.errors import InputError, one_line
 
 BROKEN_DASH_M = 6.0
 """Dash length of a broken line without an explicit pattern (German motorway, RMS)."""
@@ -475,7 +475,7 @@ class OpenDriveMap:
         try:
             root = etree.parse(str(path), etree.XMLParser(huge_tree=True, remove_comments=True)).getroot()
         except (etree.XMLSyntaxError, OSError) as exc:
-            raise InputError(path, "malformed XML: " + " ".join(str(exc).split())) from None
+            raise InputError(path, "malformed XML: " + one_line(exc)) from None
         return _Parser(path).map(strip_namespace(root))
 
     def negative_widths(self) -> list[NegativeWidth]:

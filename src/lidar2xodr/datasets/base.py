@@ -306,11 +306,6 @@ class ScanFileDataset:
         log.info("mount estimated from the ground: sensor %.2f m above the road", self.sensor.mount[2, 3])
 
 
-def one_line(text: object) -> str:
-    """A library's message (YAML and XML errors span lines) as one line, for InputError."""
-    return " ".join(str(text).split())
-
-
 def check_trajectory(times: np.ndarray, where: str | Path) -> None:
     """Poses must be finite and strictly increasing in time."""
     if len(times) < 2:

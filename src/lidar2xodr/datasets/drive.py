@@ -16,10 +16,10 @@ import numpy as np
 import yaml
 
 from lidar2xodr.data import GeoOrigin, SensorInfo, Trajectory
-from lidar2xodr.datasets.base import RawScan, ScanFileDataset, check_trajectory, mount_from_xyzrpy, one_line
+from lidar2xodr.datasets.base import RawScan, ScanFileDataset, check_trajectory, mount_from_xyzrpy
 from lidar2xodr.datasets.pointfiles import read_scan_file, scan_files
 from lidar2xodr.datasets.poses import check_geodetic, poses_from_xyzrpy, read_pose_csv
-from lidar2xodr.errors import InputError
+from lidar2xodr.errors import InputError, one_line
 
 FORMAT_NAME = "lidar2xodr-drive"
 

@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar2xodr.datasets.base import CorruptScan, RawScan, one_line, time_unit
-from lidar2xodr.errors import InputError
+from lidar2xodr.datasets.base import CorruptScan, RawScan, time_unit
+from lidar2xodr.errors import InputError, one_line
 
 SCAN_SUFFIXES = (".pcd", ".las", ".laz", ".ply", ".bin", ".npy")
 INTENSITY_NAMES = ("intensity", "i", "reflectivity", "reflectance", "remission")

@@ -37,10 +37,10 @@ from typing import Any
 import numpy as np
 
 from lidar2xodr.data import GeoOrigin, SensorInfo, Trajectory
-from lidar2xodr.datasets.base import RawScan, ScanFileDataset, check_trajectory, one_line
+from lidar2xodr.datasets.base import RawScan, ScanFileDataset, check_trajectory
 from lidar2xodr.datasets.pointfiles import from_structured
 from lidar2xodr.datasets.poses import geodetic_to_local, poses_from_xyzrpy
-from lidar2xodr.errors import InputError
+from lidar2xodr.errors import InputError, one_line
 
 CLOUD = "sensor_msgs/msg/PointCloud2"
 ODOMETRY = "nav_msgs/msg/Odometry"
