@@ -168,3 +168,22 @@ def test_the_summary_says_failed_only_when_a_reader_could_not_read_the_map() -> 
     assert "pyxodr: reads it, 0 warning(s), 0 error(s)" in line
     assert "CARLA: FAILED to read it, 0 warning(s), 1 error(s)" in line
     assert "netconvert: FAILED to read it" in line
+
+
+def test_a_map_failing_the_checks_is_refused_with_the_reason(demo_drive: tuple[Path, Path], tmp_path: Path,
+                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """The error names what failed (here a negative lane width), not only the parts that passed."""
+    import lidar2xodr.check
+
+    reason = "1 negative lane width record(s), first: road 2 lane -1 -0.012 m at s=40.00"
+    real = lidar2xodr.check.check_file
+
+    def failing(*args: object, **kwargs: object) -> dict:
+        return {**real(*args, **kwargs), "ok": False, "reasons": [reason]}
+
+    monkeypatch.setattr(lidar2xodr.check, "check_file", failing)
+    _, drive = demo_drive
+    out = tmp_path / "map.xodr"
+    with pytest.raises(InputError, match="fails the checks: 1 negative lane width record.*ASAM errors 0") as err:
+        BuildPipeline(drive, out).run()
+    assert "nothing written" in str(err.value) and not out.exists()
