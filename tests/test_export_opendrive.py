@@ -486,3 +486,21 @@ def test_divider_must_be_an_inner_boundary(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="divider"):
         export_opendrive(model, None, ExportConfig(), tmp_path / "x.xodr")
     assert not (tmp_path / "x.xodr").exists()
+
+
+def test_a_width_record_dipping_below_zero_is_replaced_by_a_non_negative_one() -> None:
+    """A lane opening from zero width: the smoothing spline's first record overshoots to -1.25 cm
+    (the sweep's refused maps); it becomes a non-negative cubic with the same end values."""
+    from lidar2xodr.export_opendrive import _non_negative, _Records
+
+    rec = _Records(np.array([0.0, 20.0]), np.array([[0.0, -0.01, 0.002, 0.0], [0.6, 0.07, -0.002, 0.0]]))
+    before = rec(np.linspace(0.0, 20.0, 2001))
+    assert before.min() < -0.01
+    fixed = _non_negative(rec, 40.0)
+    s = np.linspace(0.0, 40.0, 8001)
+    assert fixed(s).min() >= -1e-12
+    assert fixed(np.array([0.0]))[0] == 0.0 and fixed(np.array([20.0]))[0] == pytest.approx(0.6)
+    assert fixed(np.array([20.0 - 1e-9]))[0] == pytest.approx(0.6, abs=1e-6), "the width jumps at the record's end"
+    assert np.array_equal(fixed.coeffs[1], rec.coeffs[1]), "a record that does not dip is left as it is"
+    untouched = _Records(np.array([0.0]), np.array([[3.5, 0.0, 0.0, 0.0]]))
+    assert np.array_equal(_non_negative(untouched, 100.0).coeffs, untouched.coeffs)

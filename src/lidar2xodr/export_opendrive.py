@@ -415,6 +415,32 @@ def _spline_records(x: np.ndarray, y: np.ndarray, breaks: np.ndarray, smooth: fl
     return _merge_records(_Records(pp.x[keep].copy(), pp.c[::-1, keep].T.copy()), float(breaks[-1]))
 
 
+def _non_negative(rec: _Records, end: float) -> _Records:
+    """Width records with every cubic that dips below zero (by more than the check's tolerance) replaced.
+
+    A smoothing spline pinned to zero width where a lane opens or closes can overshoot just beside
+    that end (-0.001 to -0.06 m in the sweep: a negative width, so the map was refused). The record
+    becomes the cubic Hermite between its end values (clipped at 0) whose end slopes are limited to
+    m0 >= -3 w0 / h and m1 <= 3 w1 / h, which keeps it non-negative; records that do not dip are
+    left as they are, so maps that passed keep their bytes.
+    """
+    from lidar2xodr.opendrive import NEGATIVE_WIDTH_TOL_M, cubic_minimum
+
+    ends = np.append(rec.starts[1:], end)
+    coeffs = rec.coeffs.copy()
+    for i, (start, stop) in enumerate(zip(rec.starts, ends, strict=True)):
+        h = float(stop - start)
+        if h <= 0 or cubic_minimum(tuple(coeffs[i]), h)[1] >= -NEGATIVE_WIDTH_TOL_M:
+            continue
+        a, b, c, d = coeffs[i]
+        w0, w1 = max(a, 0.0), max(a + h * (b + h * (c + h * d)), 0.0)
+        m0 = max(b, -3.0 * w0 / h)
+        m1 = min(b + h * (2.0 * c + 3.0 * h * d), 3.0 * w1 / h)
+        dw = w1 - w0
+        coeffs[i] = [w0, m0, (3.0 * dw / h - 2.0 * m0 - m1) / h, (m0 + m1 - 2.0 * dw / h) / h**2]
+    return _Records(rec.starts.copy(), coeffs)
+
+
 def _merge_records(rec: _Records, end: float, tol: float = 1e-6) -> _Records:
     """Flatten records that vary less than `tol` and drop records that continue the previous polynomial.
 
@@ -604,7 +630,7 @@ def _lane_fit(grid_s: np.ndarray, t_data: dict[int, np.ndarray],
                 lead = arr[c + 1] + w
             elif tapered and i == c - 1:
                 lead = arr[c - 1] - w
-            widths.append(_spline_records(s, w, breaks, constraints=tuple(cons), c1=True))
+            widths.append(_non_negative(_spline_records(s, w, breaks, constraints=tuple(cons), c1=True), s1))
         fits.append(_SectionFit(s0, s1, ids, widths, preds[j], succs[j], c, types))
         offset_s.append(s)
         offset_t.append(lead)

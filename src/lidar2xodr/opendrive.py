@@ -588,15 +588,22 @@ def negative_widths(road: Road) -> list[NegativeWidth]:
                 end = rec.starts[i + 1] if i + 1 < len(rec.starts) else sec.s_end - sec.s
                 if end < start:
                     continue
-                length = end - start
-                roots = np.roots([3 * d, 2 * c, b]) if (b, c, d) != (0.0, 0.0, 0.0) else np.array([])
-                inside = [r.real for r in roots if abs(r.imag) < 1e-12 and 0.0 < r.real < length]
-                ds = np.array([0.0, length, *inside])
-                vals = a + b * ds + c * ds**2 + d * ds**3
-                j = int(np.argmin(vals))
-                if vals[j] < -NEGATIVE_WIDTH_TOL_M:
-                    out.append(NegativeWidth(road.id, k, lane.id, float(sec.s + start + ds[j]), float(vals[j])))
+                at, value = cubic_minimum((a, b, c, d), end - start)
+                if value < -NEGATIVE_WIDTH_TOL_M:
+                    out.append(NegativeWidth(road.id, k, lane.id, float(sec.s + start + at), value))
     return out
+
+
+def cubic_minimum(coeffs: tuple[float, float, float, float], length: float) -> tuple[float, float]:
+    """(ds, value) of the smallest value of a + b ds + c ds^2 + d ds^3 on [0, length]: at an end or
+    at a root of the derivative inside (its only possible minima), so no dip between samples is missed."""
+    a, b, c, d = (float(v) for v in coeffs)
+    roots = np.roots([3 * d, 2 * c, b]) if (b, c, d) != (0.0, 0.0, 0.0) else np.array([])
+    inside = [r.real for r in roots if abs(r.imag) < 1e-12 and 0.0 < r.real < length]
+    ds = np.array([0.0, length, *inside])
+    vals = a + b * ds + c * ds**2 + d * ds**3
+    j = int(np.argmin(vals))
+    return float(ds[j]), float(vals[j])
 
 
 class _Parser:
