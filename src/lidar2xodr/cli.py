@@ -288,6 +288,8 @@ def build(
         cfg = cfg.model_copy(update={"extraction": cfg.extraction.model_copy(update={"odometry": odometry.value})})
     if scheduler is not None:
         cfg = cfg.model_copy(update={"extraction": _with_scheduler(cfg.extraction, scheduler)})
+    if reference is not None and not reference.is_file():
+        raise InputError(reference, "reference map not found")
     if data_format is None:
         from lidar2xodr.datasets import drives_in
 
@@ -297,8 +299,6 @@ def build(
             raise InputError("--anchor", f"must name one of the {len(drive)} drive(s) given, 1 to {len(drive)} "
                                          f"(got {anchor})")
         cfg = cfg.model_copy(update={"fusion": cfg.fusion.model_copy(update={"anchor": anchor})})
-    if reference is not None and not reference.is_file():
-        raise InputError(reference, "reference map not found")
     result = BuildPipeline(
         drive, output, cfg, data_format=data_format.value if data_format else None, report_dir=report,
         scenario=scenario, keep_intermediate=keep_intermediate, allow_invalid=allow_invalid, reference=reference,
