@@ -416,7 +416,8 @@ def compare_maps(generated: Path, reference: Path, cfg: EvaluationConfig, align:
         transform, alignment = _rigid_alignment(gen, ref, transform, align)
         gen = carriageways(gen_map, cfg.sample_step_m, transform)
         frame += (f"; then moved rigidly onto the reference: x {alignment['dx_m']:+.2f} m, y {alignment['dy_m']:+.2f}"
-                  f" m, yaw {alignment['yaw_deg']:+.3f} deg")
+                  f" m, yaw {alignment['yaw_deg']:+.3f} deg, {alignment['inlier_share']:.0%} of its boundary points "
+                  "matched")
     for cw, path in ((gen, generated), (ref, reference)):
         if len(cw.centre.xy) == 0:
             raise InputError(path, f"no driving lanes to evaluate (lane types counted: {sorted(DRIVING_TYPES)})")

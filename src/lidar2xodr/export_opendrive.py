@@ -152,6 +152,7 @@ from lidar2xodr.data import Boundary, GroundPlanes, LaneModel, RoadLink, RoadNet
 from lidar2xodr.errors import InputError
 from lidar2xodr.export_sections import fold_appearing_lanes
 from lidar2xodr.fileio import write_bytes
+from lidar2xodr.georeference import LOCAL_PLACEHOLDER, origin_proj
 
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(32)
 _GL_X = 0.5 * (_GL_X + 1.0)
@@ -161,7 +162,6 @@ _LINK_MIN_OVERLAP_M = 0.3
 _WHERE = "lane model"
 _TAPER_TYPES = ("entry", "exit")  # lanes that end or begin in a taper (LaneSection.lane_types)
 _CUT_EPS = 1e-9
-_LOCAL_TMERC = "+proj=tmerc +lat_0=0 +lon_0=0 +k=1 +x_0=0 +y_0=0 +ellps=WGS84 +units=m +no_defs"
 
 
 @dataclass
@@ -826,13 +826,8 @@ def _build_lanes(offset: _Records, fits: list[_SectionFit], bounds: dict[int, Bo
 
 def _geo_reference(model: LaneModel) -> tuple[str, bool]:
     """PROJ string of the local frame and whether it is a true geodetic placement."""
-    origin = model.origin
-    if origin.proj:
-        return origin.proj, True
-    if origin.lat is not None and origin.lon is not None:
-        return (f"+proj=tmerc +lat_0={origin.lat!r} +lon_0={origin.lon!r} +k=1 +x_0=0 +y_0=0 +ellps=WGS84 "
-                f"+units=m +no_defs"), True
-    return _LOCAL_TMERC, False
+    proj = origin_proj(model.origin)
+    return (proj, True) if proj else (LOCAL_PLACEHOLDER, False)
 
 
 def _date(planes: GroundPlanes | None) -> str | None:

@@ -41,6 +41,7 @@ from scipy.spatial import cKDTree
 from lidar2xodr.config import FusionConfig
 from lidar2xodr.data import GeoOrigin, GroundPlanes, MarkingCloud, Trajectory
 from lidar2xodr.errors import InputError
+from lidar2xodr.georeference import origin_proj
 
 
 @dataclass
@@ -73,20 +74,11 @@ class FusionReport:
         return [f"drive {d.line()}" for d in self.drives if d.left_out]
 
 
-def geodetic(origin: GeoOrigin) -> str | None:
-    """PROJ string of a cloud's local frame, or None when it has no geodetic placement."""
-    if origin.proj:
-        return origin.proj
-    if origin.lat is not None and origin.lon is not None:
-        return f"+proj=tmerc +lat_0={origin.lat!r} +lon_0={origin.lon!r} +k=1 +x_0=0 +y_0=0 +ellps=WGS84 +units=m"
-    return None
-
-
 def _reproject(cloud: MarkingCloud, target: GeoOrigin) -> MarkingCloud:
     """The cloud in the local frame of `target` (same geodetic placement, other origin)."""
     from lidar2xodr.georeference import ToWgs84
 
-    src, dst = geodetic(cloud.origin), geodetic(target)
+    src, dst = origin_proj(cloud.origin), origin_proj(target)
     if src is None or dst is None or src == dst:
         return cloud
     a, b = ToWgs84(src, "fusion"), ToWgs84(dst, "fusion")
@@ -226,7 +218,7 @@ def fuse(clouds: list[MarkingCloud], names: list[str], modes: list[str], cfg: Fu
          ) -> tuple[MarkingCloud, FusionReport]:
     """The drives' markings in one cloud, each drive aligned to those fused before it (module docstring)."""
     rep = FusionReport()
-    any_geo = any(geodetic(c.origin) for c in clouds)
+    any_geo = any(origin_proj(c.origin) for c in clouds)
     kept: list[MarkingCloud] = []
     for cloud, name, mode in zip(clouds, names, modes, strict=True):
         entry = DriveOffset(name, points=len(cloud.xyz))
@@ -237,7 +229,7 @@ def fuse(clouds: list[MarkingCloud], names: list[str], modes: list[str], cfg: Fu
         if mode == "lidar":
             entry.left_out = "placed by LiDAR odometry: no GNSS prior to align it by"
             continue
-        if any_geo and geodetic(cloud.origin) is None:
+        if any_geo and origin_proj(cloud.origin) is None:
             entry.left_out = "its poses have no geodetic origin, the other drives' do"
             continue
         if not kept:

@@ -12,6 +12,7 @@ import numpy as np
 import pyproj
 from pyproj.exceptions import CRSError, ProjError
 
+from lidar2xodr.data import GeoOrigin
 from lidar2xodr.errors import InputError
 
 LOCAL_PLACEHOLDER = "+proj=tmerc +lat_0=0 +lon_0=0 +k=1 +x_0=0 +y_0=0 +ellps=WGS84 +units=m +no_defs"
@@ -19,6 +20,17 @@ LOCAL_PLACEHOLDER = "+proj=tmerc +lat_0=0 +lon_0=0 +k=1 +x_0=0 +y_0=0 +ellps=WGS
 map without geoReference: a transverse Mercator at 0 N, 0 E (the map lies in the Gulf of Guinea)."""
 
 _VERTICAL = ("+geoidgrids", "+vunits", "+geoid_crs")
+
+
+def origin_proj(origin: GeoOrigin) -> str | None:
+    """PROJ string of a local frame's geodetic placement: its own, or a transverse Mercator at its
+    lat/lon (what the exporter writes as geoReference); None when the frame has no placement."""
+    if origin.proj:
+        return origin.proj
+    if origin.lat is not None and origin.lon is not None:
+        return (f"+proj=tmerc +lat_0={origin.lat!r} +lon_0={origin.lon!r} +k=1 +x_0=0 +y_0=0 +ellps=WGS84 "
+                f"+units=m +no_defs")
+    return None
 
 
 def horizontal(geo: str) -> str:

@@ -312,10 +312,9 @@ def write_checked_map(
         verdict["file"] = str(out)
         timings.update(export=t1 - t0, check=time.perf_counter() - t1)
         if not verdict["ok"] and not allow_invalid:
-            why = "; ".join(verdict.get("reasons") or []) or "see below"
             raise InputError(
                 where,
-                f"the generated map fails the checks: {why} ({_verdict_line(verdict)}); "
+                f"the generated map fails the checks: {'; '.join(verdict['reasons'])} ({_verdict_line(verdict)}); "
                 "nothing written (use --allow-invalid to write it anyway)",
             )
     return summary, verdict
