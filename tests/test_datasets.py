@@ -558,3 +558,17 @@ def test_simulated_drive_gives_the_same_markings_from_its_mcap_as_from_its_pcds(
     assert np.allclose(bag.sensor.mount, pcd.sensor.mount, atol=1e-6)
     counts = [len(extract_markings(ds, Config().extraction).xyz) for ds in (pcd, bag)]
     assert counts[0] > 5000 and abs(counts[1] - counts[0]) <= 0.01 * counts[0], counts
+
+
+def test_build_refuses_an_anchor_that_names_no_given_drive(small_drive, tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    drive = write_drive(small_drive, tmp_path / "d")
+    out = tmp_path / "m.xodr"
+    proc = subprocess.run([sys.executable, "-m", "lidar2xodr.cli", "build", str(drive), "-o", str(out), "--anchor",
+                           "2"], capture_output=True, text=True, timeout=120, check=False)
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert proc.returncode == 2 and len(lines) == 1 and "--anchor" in lines[0] and "1 to 1 (got 2)" in lines[0], \
+        proc.stderr
+    assert not out.exists() and "Traceback" not in proc.stderr
