@@ -523,6 +523,26 @@ def test_sigterm_during_a_slow_checker_ends_it_at_once(tmp_path: Path, assets: d
     assert _wait(lambda: not any(_alive(k) for k in slow), 10), "the checker outlived check"
 
 
+def test_a_sigterm_that_surfaces_as_another_error_is_still_a_clean_143() -> None:
+    """CI: the SIGTERM hit `check` while a C extension was being imported, which reported
+    "ImportError: initialization failed", and the command said "internal error" with exit 3."""
+    import typer
+
+    from lidar2xodr.cli import _clean_errors
+    from lidar2xodr.lifetime import Terminated
+
+    def command() -> None:
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)
+        except Terminated:
+            raise ImportError("initialization failed") from None
+
+    with pytest.raises(typer.Exit) as stop:
+        _clean_errors(command)()
+    assert stop.value.exit_code == 143
+
+
 def test_a_child_started_after_the_interrupt_is_killed_at_once() -> None:
     """A thread that runs two children in a row must not start the second one unkilled after the
     interrupt killed the first (netconvert `--version`, then the conversion: CI waited 30 s for it)."""

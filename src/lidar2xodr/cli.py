@@ -139,7 +139,7 @@ def _environment_problem(exc: OSError) -> str:
 
 def _clean_errors(fn: F) -> F:
     """Turn expected failures into one line and exit code 2; SIGTERM and Ctrl-C into 143 and 130."""
-    from lidar2xodr.lifetime import Terminated, terminate_as_interrupt
+    from lidar2xodr.lifetime import Terminated, terminate_as_interrupt, terminated
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
@@ -158,6 +158,9 @@ def _clean_errors(fn: F) -> F:
         except (typer.Exit, typer.Abort, typer.BadParameter):
             raise
         except Exception as exc:
+            if terminated():  # the SIGTERM's Terminated, turned into another error by the code it interrupted
+                _say("[bold red]terminated[/]", "(SIGTERM); nothing written")
+                raise typer.Exit(143) from None
             if os.environ.get("LIDAR2XODR_DEBUG"):
                 raise
             if isinstance(exc, OSError) and exc.errno in _ENVIRONMENT_ERRNOS:

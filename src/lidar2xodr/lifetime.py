@@ -34,8 +34,18 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM arrived: handled like Ctrl-C, reported with exit code 143 (128 + SIGTERM)."""
 
 
+_TERMINATED = [False]  # a SIGTERM arrived in the current `terminate_as_interrupt` block
+
+
 def _raise_terminated(signum: int, frame: FrameType | None) -> None:
+    _TERMINATED[0] = True
     raise Terminated()
+
+
+def terminated() -> bool:
+    """Whether a SIGTERM arrived: the `Terminated` it raised can come out as another error (a C
+    extension being imported at that moment reports "ImportError: initialization failed")."""
+    return _TERMINATED[0]
 
 
 @contextlib.contextmanager
@@ -44,6 +54,7 @@ def terminate_as_interrupt() -> Iterator[None]:
     if threading.current_thread() is not threading.main_thread():
         yield
         return
+    _TERMINATED[0] = False
     previous = signal.signal(signal.SIGTERM, _raise_terminated)
     try:
         yield
