@@ -260,6 +260,9 @@ class LanesConfig(_Section):
     traffic_directions: bool = Field(True, description="ours: lanes with oncoming recorded traffic (the drive's "
                                            "object list) left of lanes with traffic along the drive make a two-way "
                                            "road where paint and ego gave no divider (lane_directions.py)")
+    unpainted_lanes: bool = Field(True, description="ours: a broken line always has a lane on both sides: where the "
+                                        "outermost line is broken (dash pattern measured), the lane beyond it is built "
+                                        "at its neighbour's width with an unpainted border (unpainted_lanes.py)")
     traffic_min_m: float = Field(40.0, gt=0, description="ours: metres of tracked traffic in a lane that decide its "
                                              "direction")
     traffic_share: float = Field(0.8, ge=0, le=1, description="ours: share of a lane's tracked traffic that must run "

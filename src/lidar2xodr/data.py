@@ -99,6 +99,9 @@ class Candidate:
     superline: int = -1
 
 
+MARK_TYPES = ("solid", "broken", "none")
+
+
 @dataclass
 class Boundary:
     """One lane boundary (a superline), ordered along the road.
@@ -109,7 +112,7 @@ class Boundary:
 
     id: int
     t: np.ndarray  # (M,) aligned with LaneModel.s
-    mark_type: str = "solid"  # solid | broken
+    mark_type: str = "solid"  # one of MARK_TYPES; "none": an unpainted border (unpainted_lanes.py)
     mark_width: float = 0.15
     dash_length: float | None = None
     gap_length: float | None = None

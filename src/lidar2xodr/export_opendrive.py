@@ -148,7 +148,7 @@ from scipy.ndimage import median_filter
 from scipy.spatial import cKDTree
 
 from lidar2xodr.config import ExportConfig
-from lidar2xodr.data import Boundary, GroundPlanes, LaneModel, RoadLink, RoadNetwork
+from lidar2xodr.data import MARK_TYPES, Boundary, GroundPlanes, LaneModel, RoadLink, RoadNetwork
 from lidar2xodr.errors import InputError
 from lidar2xodr.export_sections import fold_appearing_lanes
 from lidar2xodr.fileio import write_bytes
@@ -669,8 +669,8 @@ def _check_model(model: LaneModel, cfg: ExportConfig, where: str = _WHERE) -> No
     for b in model.boundaries:
         if np.shape(b.t) != s.shape:
             raise InputError(where, f"boundary {b.id}: {np.size(b.t)} offsets for {len(s)} stations")
-        if b.mark_type not in ("solid", "broken"):
-            raise InputError(where, f"boundary {b.id}: mark type {b.mark_type!r} (solid or broken)")
+        if b.mark_type not in MARK_TYPES:
+            raise InputError(where, f"boundary {b.id}: mark type {b.mark_type!r} (solid, broken or none)")
     if not model.sections:
         raise InputError(where, "no lane sections")
     for j, sec in enumerate(model.sections):
@@ -765,6 +765,8 @@ def _mark(b: Boundary) -> xodr.RoadMark:
                              length=float(b.dash_length) if pattern else None,
                              space=float(b.gap_length) if pattern else None,
                              laneChange=xodr.LaneChange.both)
+    if b.mark_type == "none":
+        return xodr.RoadMark(xodr.RoadMarkType.none, laneChange=xodr.LaneChange.none)
     return xodr.RoadMark(xodr.RoadMarkType.solid, float(b.mark_width), laneChange=xodr.LaneChange.none)
 
 

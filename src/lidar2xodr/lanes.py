@@ -82,9 +82,10 @@ from scipy.spatial import cKDTree
 from scipy.stats import norm
 
 from lidar2xodr.config import LanesConfig
-from lidar2xodr.data import Boundary, Candidate, GeoOrigin, LaneModel, LaneSection, MarkingCloud
+from lidar2xodr.data import MARK_TYPES, Boundary, Candidate, GeoOrigin, LaneModel, LaneSection, MarkingCloud
 from lidar2xodr.errors import InputError
 from lidar2xodr.fileio import write_text
+from lidar2xodr.unpainted_lanes import implied_edges
 
 FORMAT = "lidar2xodr.lanes/1"
 _CHUNK = 20000
@@ -2081,36 +2082,46 @@ def _assemble(
     used = np.flatnonzero(on.any(axis=1))
     med = np.array([np.nanmedian(t[i]) for i in used])
     ordered = used[np.argsort(-med, kind="stable")]
-    new_id = np.full(len(on), -1, dtype=np.int64)
-    new_id[ordered] = np.arange(len(ordered))
-    z_ref = _reference_z(k_pt, t_pt, pts.z, inside & (label >= 0) & np.isin(label, used), len(frame.s), step)
-    reference = np.column_stack([frame.xy[a:b], z_ref[a:b]])
-    boundaries = []
+    patterns = [_mark_pattern(s_pt[(label == old) & inside], cfg) for old in ordered]
     residuals = []
     for old in ordered:
         sel = (label == old) & inside
         resid = t_pt[sel] - fit.t[old, k_pt[sel]]
         residuals.append(resid[np.isfinite(resid)])
     widths = marking_widths(residuals)
-    for old, width in zip(ordered, widths, strict=True):
-        sel = (label == old) & inside
-        kind, dash, gap = _mark_pattern(s_pt[sel], cfg)
-        boundaries.append(
-            Boundary(
-                id=int(new_id[old]),
-                t=np.where(on[old], t[old], np.nan),
-                mark_type=kind,
-                mark_width=round(width, 3) if width is not None else 0.15,
-                dash_length=dash,
-                gap_length=gap,
+    rows = [
+        Boundary(id=-1, t=np.where(on[old], t[old], np.nan), mark_type=kind,
+                 mark_width=round(width, 3) if width is not None else 0.15, dash_length=dash, gap_length=gap)
+        for old, width, (kind, dash, gap) in zip(ordered, widths, patterns, strict=True)
+    ]
+    rows_on, rows_t = on[ordered], t[ordered]
+    if cfg.unpainted_lanes:
+        broken = np.array([kind == "broken" and dash is not None and gap is not None
+                           for kind, dash, gap in patterns], dtype=bool)
+        extra_on, extra_t = implied_edges(rows_on, rows_t, broken, step, cfg)
+        if len(extra_on):
+            rows_on, rows_t = np.vstack([rows_on, extra_on]), np.vstack([rows_t, extra_t])
+            rows += [Boundary(id=-1, t=row, mark_type="none", mark_width=0.0) for row in extra_t]
+            warnings.append(
+                f"{len(extra_on)} lane(s) beyond a broken outermost line built without a seen outer edge "
+                "(a broken line has a lane on both sides; width from its neighbour)"
             )
-        )
-    sections, on_new, t_new = _sections(on[ordered], t[ordered], s, cfg.min_section_length_m)
+    final = np.argsort(-np.array([np.nanmedian(r.t) for r in rows]), kind="stable")
+    rows_on, rows_t = rows_on[final], rows_t[final]
+    boundaries = [rows[i] for i in final]
+    for i, bnd in enumerate(boundaries):
+        bnd.id = i
+    position = np.argsort(final, kind="stable")
+    new_id = np.full(len(on), -1, dtype=np.int64)
+    new_id[ordered] = position[: len(ordered)]
+    z_ref = _reference_z(k_pt, t_pt, pts.z, inside & (label >= 0) & np.isin(label, used), len(frame.s), step)
+    reference = np.column_stack([frame.xy[a:b], z_ref[a:b]])
+    sections, on_new, t_new = _sections(rows_on, rows_t, s, cfg.min_section_length_m)
     for i, bnd in enumerate(boundaries):
         bnd.t = t_new[i]
     for i, c in enumerate(candidates):
         c.superline = int(new_id[superline[i]]) if superline[i] < len(new_id) else -1
-    warnings.extend(_unused_notes(fit.t[:, a:b], on_new, ordered, s))
+    warnings.extend(_unused_notes(fit.t[:, a:b], on_new, {int(old): int(new_id[old]) for old in ordered}, s))
     model = LaneModel(
         s=s,
         reference=reference,
@@ -2123,10 +2134,9 @@ def _assemble(
     return model, new_id
 
 
-def _unused_notes(t_fit: np.ndarray, on: np.ndarray, ordered: np.ndarray, s: np.ndarray) -> list[str]:
-    """One warning per measured line for the stretches where it is not a lane boundary."""
+def _unused_notes(t_fit: np.ndarray, on: np.ndarray, row: dict[int, int], s: np.ndarray) -> list[str]:
+    """One warning per measured line (row: its boundary id) for the stretches where it is not a lane boundary."""
     notes = []
-    row = {int(old): i for i, old in enumerate(ordered)}
     for x in range(len(t_fit)):
         used = on[row[x]] if x in row else np.zeros(len(s), dtype=bool)
         unused = np.isfinite(t_fit[x]) & ~used
@@ -2282,8 +2292,8 @@ def model_from(data: dict, path: str | Path) -> LaneModel:
             t = _arr(b["t"], (), where, "t")
             if len(t) != len(s):
                 raise InputError(where, f"t has {len(t)} values for {len(s)} stations")
-            if b["mark_type"] not in ("solid", "broken"):
-                raise InputError(where, f"mark_type {b['mark_type']!r} (solid or broken)")
+            if b["mark_type"] not in MARK_TYPES:
+                raise InputError(where, f"mark_type {b['mark_type']!r} (solid, broken or none)")
             boundaries.append(
                 Boundary(
                     int(b["id"]),

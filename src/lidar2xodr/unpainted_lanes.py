@@ -1,0 +1,68 @@
+"""Lanes beyond a broken outermost line: a broken line always has a lane on both sides.
+
+A broken (lane) line separates two lanes of traffic; it never marks the edge of a carriageway
+(edge lines are solid). Where the outermost kept line of the carriageway is broken, the lane
+beyond it exists but its outer border was not seen: unpainted (roads that leave the inner edge
+beside a narrow shoulder without a line, as roadgen's corridors do and real roads under
+maintenance do), worn away, or beyond the sensor's reach. The lanes stage would otherwise stop
+at the broken line and build one lane fewer, and the road centre half a lane off.
+
+The lane's width comes from the data: the median width of the lane on the other side of the
+broken line over the stretch where the line is outermost (lanes of one carriageway share their
+width). Its outer border is written without a road mark ("none"). Only lines whose dash pattern
+was measured (dash and gap lengths found) count as broken, so a solid line seen in pieces
+(occlusions, sparse far returns) adds no lane.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lidar2xodr.config import LanesConfig
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1), strict=False))
+
+
+def implied_edges(on: np.ndarray, t: np.ndarray, broken: np.ndarray, step: float,
+                  cfg: LanesConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Outer borders of the lanes beyond broken outermost lines.
+
+    on, t: (B, M) presence and lateral offset (left positive) of the kept lines at each station;
+    broken: (B,) lines with a measured dash pattern. Returns (K, M) presence and offsets of the
+    implied borders, one row per (broken line, side) that is outermost over at least
+    `min_section_length_m`; K may be 0.
+    """
+    b_n, m = on.shape
+    rows_on: list[np.ndarray] = []
+    rows_t: list[np.ndarray] = []
+    if b_n < 2 or m == 0 or not np.any(broken):
+        return np.zeros((0, m), dtype=bool), np.full((0, m), np.nan)
+    t_on = np.where(on, t, np.nan)
+    count = on.sum(axis=0)
+    min_run = max(int(round(cfg.min_section_length_m / step)), 1)
+    with np.errstate(invalid="ignore"):
+        for side in (1.0, -1.0):
+            key = np.where(on, side * t, -np.inf)
+            outer = np.argmax(key, axis=0)
+            inner_key = key.copy()
+            inner_key[outer, np.arange(m)] = -np.inf
+            inner = np.argmax(inner_key, axis=0)
+            for b in np.flatnonzero(broken):
+                here = (outer == b) & on[b] & (count >= 2)
+                width = side * (t_on[b] - t_on[inner, np.arange(m)])
+                lane_like = here & (width >= cfg.min_lane_width_m) & (width <= cfg.max_lane_width_m)
+                runs = [(s, e) for s, e in _runs(here) if e - s >= min_run]
+                if not runs or not lane_like.any():
+                    continue
+                w = float(np.median(width[lane_like]))
+                keep = np.zeros(m, dtype=bool)
+                for s, e in runs:
+                    keep[s:e] = True
+                rows_on.append(keep)
+                rows_t.append(np.where(keep, t[b] + side * w, np.nan))
+    if not rows_on:
+        return np.zeros((0, m), dtype=bool), np.full((0, m), np.nan)
+    return np.array(rows_on), np.array(rows_t)
