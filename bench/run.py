@@ -73,16 +73,23 @@ def check_row(xodr: Path, out_json: Path) -> dict:
 
 
 def bench_map(name: str, xodr: Path, out: Path, length_m: float, lane_target: float, seed: int = 1,
-              case: str | None = None) -> dict:
-    """simulate (at `seed`) -> build -> check -> compare of one map; files under out/(case or name)."""
+              case: str | None = None, drive: Path | None = None) -> dict:
+    """simulate (at `seed`) -> build -> check -> compare of one map; files under out/(case or name).
+
+    `drive`: an already simulated drive of this map, seed and length (an earlier run's) to build
+    instead of simulating again."""
     base = out / (case or name)
-    drive = base / "drive"
     row: dict = {"map": name, "seed": seed, "length_m": length_m}
-    rc, t_sim, log = run(CLI + ["simulate", str(xodr), str(drive), "--length-m", str(length_m), "--seed", str(seed)])
-    row["simulate_s"] = round(t_sim, 1)
-    if rc != 0:
-        row["error"] = "simulate: " + log.strip().splitlines()[-1]
-        return row
+    if drive is None:
+        drive = base / "drive"
+        rc, t_sim, log = run(CLI + ["simulate", str(xodr), str(drive), "--length-m", str(length_m),
+                                    "--seed", str(seed)])
+        row["simulate_s"] = round(t_sim, 1)
+        if rc != 0:
+            row["error"] = "simulate: " + log.strip().splitlines()[-1]
+            return row
+    else:
+        row["drive"] = str(drive)
     xodr_out = base / "map.xodr"
     rc, t_build, log = run(CLI + ["build", str(drive), "-o", str(xodr_out), "--report", str(base / "report")])
     row["build_s"] = round(t_build, 1)

@@ -101,7 +101,16 @@ def case_id(case: dict) -> str:
     return f"{case['map']}-s{case['seed']}-{case['length_m']:g}m"
 
 
-def run_case(case: dict, out: Path, commit: str, force: bool) -> dict:
+def reused_drive(case: dict, drives_from: Path | None) -> Path | None:
+    """The drive of this case in an earlier sweep's output, when that case finished there (its row exists)."""
+    if drives_from is None:
+        return None
+    drive = drives_from / "cases" / case_id(case) / "drive"
+    done = (drives_from / "rows" / f"{case_id(case)}.json").exists()
+    return drive if done and (drive / "meta.yaml").exists() else None
+
+
+def run_case(case: dict, out: Path, commit: str, force: bool, drives_from: Path | None = None) -> dict:
     """One case, or its stored row when it already ran for this commit and these arguments."""
     row_path = out / "rows" / f"{case_id(case)}.json"
     key = {"commit": commit, "case": {k: v for k, v in case.items()}}
@@ -120,7 +129,7 @@ def run_case(case: dict, out: Path, commit: str, force: bool) -> dict:
             _store(row_path, key, row)
             return row
     row = bench_map(case["map"], Path(case["xodr"]), out / "cases", case["length_m"], LANE_COUNT_MIN,
-                    seed=case["seed"], case=case_id(case))
+                    seed=case["seed"], case=case_id(case), drive=reused_drive(case, drives_from))
     row.update(kind=case["kind"], case_s=round(time.perf_counter() - t0, 1))
     _store(row_path, key, row)
     return row
@@ -232,6 +241,41 @@ def format_summary(s: dict) -> str:
     return "\n".join(lines)
 
 
+CHANGE_KEYS = (("boundaries_rmse", 1), ("centerline_rmse", 1), ("lane_count", -1), ("lane_graph", -1))
+"""Compared metrics and which way is worse (+1: a rise, -1: a fall)."""
+CHANGE_TOL = {"boundaries_rmse": 0.002, "centerline_rmse": 0.002, "lane_count": 0.002, "lane_graph": 0.002}
+
+
+def changes(rows: list[dict], before_rows: Path, todo: list[dict]) -> list[dict]:
+    """Per case, the metrics that moved beyond CHANGE_TOL against an earlier sweep's rows (same case ids)."""
+    out = []
+    for case, row in zip(todo, rows, strict=True):
+        path = before_rows / f"{case_id(case)}.json"
+        if not path.exists():
+            continue
+        old = json.loads(path.read_text())["row"]
+        item = {"case": case_id(case), "worse": [], "better": []}
+        if ("error" in old) != ("error" in row):
+            (item["worse"] if "error" in row else item["better"]).append(
+                f"built -> {row['error']}" if "error" in row else f"{old['error']} -> built")
+        for key, sign in CHANGE_KEYS:
+            a, b = old.get(key), row.get(key)
+            if a is None or b is None or abs(b - a) <= CHANGE_TOL[key]:
+                continue
+            (item["worse"] if sign * (b - a) > 0 else item["better"]).append(f"{key} {a:.3f} -> {b:.3f}")
+        if item["worse"] or item["better"]:
+            out.append(item)
+    return sorted(out, key=lambda x: (not x["worse"], x["case"]))
+
+
+def format_changes(items: list[dict]) -> str:
+    worse = sum(bool(x["worse"]) for x in items)
+    lines = [f"changed cases against the earlier sweep: {len(items)} ({worse} with a metric worse)"]
+    for x in items:
+        lines.append(f"  {x['case']}: " + "; ".join([f"WORSE {w}" for w in x["worse"]] + x["better"]))
+    return "\n".join(lines)
+
+
 def table_rows(rows: list[dict]) -> list[dict]:
     out = []
     for r in rows:
@@ -251,6 +295,12 @@ def main() -> None:
     ap.add_argument("--maps", nargs="*", default=None, help="only these map stems / corridor_NNN names")
     ap.add_argument("--jobs", type=int, default=1, help="cases run at once")
     ap.add_argument("--force", action="store_true", help="run cases again even when their row exists")
+    ap.add_argument("--drives-from", type=Path, default=None,
+                    help="build the drives an earlier sweep (its --out) simulated instead of simulating again, "
+                         "for each case it finished (the simulator gives the same drive for the same map, seed and "
+                         "length; only for changes outside simulation/)")
+    ap.add_argument("--against", type=Path, default=None,
+                    help="an earlier sweep's --out: list every case whose numbers changed, worse ones first")
     args = ap.parse_args()
     if not (SHARED / "maps").is_dir():
         print(f"shared maps not found at {SHARED}: only corridors are swept")
@@ -259,7 +309,7 @@ def main() -> None:
     print(f"{len(todo)} cases, commit {commit}, {args.jobs} job(s), rows in {args.out / 'rows'}", flush=True)
 
     def one(case: dict) -> dict:
-        row = run_case(case, args.out, commit, args.force)
+        row = run_case(case, args.out, commit, args.force, args.drives_from)
         print(json.dumps({k: row.get(k) for k in ["map", "seed", "case_s", *TABLE_COLS[2:], "error"] if k in row},
                          default=str), flush=True)
         return row
@@ -275,6 +325,9 @@ def main() -> None:
     print_reader_messages(rows)
     print()
     print(format_summary(summary))
+    if args.against is not None:
+        print()
+        print(format_changes(changes(rows, args.against / "rows", todo)))
 
 
 if __name__ == "__main__":
