@@ -299,6 +299,9 @@ def main() -> None:
                     help="build the drives an earlier sweep (its --out) simulated instead of simulating again, "
                          "for each case it finished (the simulator gives the same drive for the same map, seed and "
                          "length; only for changes outside simulation/)")
+    ap.add_argument("--reverse", action="store_true",
+                    help="run the cases last first (two sweeps of two commits, each --drives-from the other, meet in "
+                         "the middle and simulate every drive once)")
     ap.add_argument("--against", type=Path, default=None,
                     help="an earlier sweep's --out: list every case whose numbers changed, worse ones first")
     args = ap.parse_args()
@@ -315,7 +318,9 @@ def main() -> None:
         return row
 
     with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        rows = list(pool.map(one, todo))
+        rows = list(pool.map(one, todo[::-1] if args.reverse else todo))
+    if args.reverse:
+        rows = rows[::-1]
     summary = summarise(rows)
     (args.out / "sweep.json").write_text(json.dumps({"command": " ".join(sys.argv), "commit": commit, "rows": rows,
                                                      "summary": summary}, indent=1, default=str))
