@@ -101,16 +101,17 @@ def case_id(case: dict) -> str:
     return f"{case['map']}-s{case['seed']}-{case['length_m']:g}m"
 
 
-def reused_drive(case: dict, drives_from: Path | None) -> Path | None:
+def reused_drive(case: dict, drives_from: list[Path]) -> Path | None:
     """The drive of this case in an earlier sweep's output, when that case finished there (its row exists)."""
-    if drives_from is None:
-        return None
-    drive = drives_from / "cases" / case_id(case) / "drive"
-    done = (drives_from / "rows" / f"{case_id(case)}.json").exists()
-    return drive if done and (drive / "meta.yaml").exists() else None
+    for folder in drives_from:
+        drive = folder / "cases" / case_id(case) / "drive"
+        done = (folder / "rows" / f"{case_id(case)}.json").exists()
+        if done and (drive / "meta.yaml").exists():
+            return drive
+    return None
 
 
-def run_case(case: dict, out: Path, commit: str, force: bool, drives_from: Path | None = None) -> dict:
+def run_case(case: dict, out: Path, commit: str, force: bool, drives_from: list[Path] | None = None) -> dict:
     """One case, or its stored row when it already ran for this commit and these arguments."""
     row_path = out / "rows" / f"{case_id(case)}.json"
     key = {"commit": commit, "case": {k: v for k, v in case.items()}}
@@ -129,7 +130,7 @@ def run_case(case: dict, out: Path, commit: str, force: bool, drives_from: Path 
             _store(row_path, key, row)
             return row
     row = bench_map(case["map"], Path(case["xodr"]), out / "cases", case["length_m"], LANE_COUNT_MIN,
-                    seed=case["seed"], case=case_id(case), drive=reused_drive(case, drives_from))
+                    seed=case["seed"], case=case_id(case), drive=reused_drive(case, drives_from or []))
     row.update(kind=case["kind"], case_s=round(time.perf_counter() - t0, 1))
     _store(row_path, key, row)
     return row
@@ -297,8 +298,9 @@ def main() -> None:
     ap.add_argument("--force", action="store_true", help="run cases again even when their row exists")
     ap.add_argument("--drives-from", type=Path, default=None,
                     help="build the drives an earlier sweep (its --out) simulated instead of simulating again, "
-                         "for each case it finished (the simulator gives the same drive for the same map, seed and "
-                         "length; only for changes outside simulation/)")
+                         "for each case it finished (this --out's own finished drives are always reused; the "
+                         "simulator gives the same drive for the same map, seed and length: only for changes "
+                         "outside simulation/)")
     ap.add_argument("--reverse", action="store_true",
                     help="run the cases last first (two sweeps of two commits, each --drives-from the other, meet in "
                          "the middle and simulate every drive once)")
@@ -312,7 +314,8 @@ def main() -> None:
     print(f"{len(todo)} cases, commit {commit}, {args.jobs} job(s), rows in {args.out / 'rows'}", flush=True)
 
     def one(case: dict) -> dict:
-        row = run_case(case, args.out, commit, args.force, args.drives_from)
+        reuse = [args.out] + ([args.drives_from] if args.drives_from else [])
+        row = run_case(case, args.out, commit, args.force, reuse)
         print(json.dumps({k: row.get(k) for k in ["map", "seed", "case_s", *TABLE_COLS[2:], "error"] if k in row},
                          default=str), flush=True)
         return row

@@ -512,3 +512,73 @@ def test_carriageway_choice_without_lines_is_empty_not_a_crash() -> None:
         keep = _choose_carriageway(np.full((b_n, m), np.nan), np.zeros((b_n, m), bool), None,
                                    np.zeros(b_n, bool), np.ones(b_n), LCFG)
         assert keep.shape == (b_n, m) and not keep.any()
+
+
+def _without_line(road: SynthRoad, line: int) -> SynthRoad:
+    """The road with every marking point of one line removed (an unpainted edge)."""
+    far = road.line_xy(road.lines[line], np.arange(-50.0, road.s[-1] + 50.0, 0.5))
+    keep = cKDTree(far).query(road.cloud.xyz[:, :2])[0] > 1.0
+    c = road.cloud
+    road.cloud = dataclasses.replace(c, xyz=c.xyz[keep], intensity=c.intensity[keep], scan_index=c.scan_index[keep],
+                                     time=c.time[keep])
+    return road
+
+
+@pytest.mark.parametrize("unpainted", [0, 3], ids=["left edge", "right edge"])
+def test_a_broken_outermost_line_has_a_lane_beyond_it(unpainted: int) -> None:
+    """An edge without paint: the lane beyond the broken line is built at its neighbour's width."""
+    road = _without_line(make_road([straight(300.0), arc(500.0, 2500.0)], gnss_noise=0.05, seed=41), unpainted)
+    model = _build(road)
+    assert [len(sec.boundary_ids) - 1 for sec in model.sections] == [3], "the unpainted lane is built"
+    kinds = [b.mark_type for b in model.boundaries]
+    assert kinds == (["none", "broken", "broken", "solid"] if unpainted == 0 else ["solid", "broken", "broken", "none"])
+    edge = model.boundaries[0 if unpainted == 0 else -1]
+    truth = road.line_xy(road.lines[unpainted], np.arange(20.0, road.s[-1] - 20.0, 1.0))
+    mine = model_lines(model)[edge.id]
+    d = np.min([polyline_distance(truth, p) for p in mine], axis=0)
+    assert np.sqrt(np.mean(d**2)) < 0.10, "the unseen edge lies a neighbour lane's width beyond the broken line"
+    assert any("broken outermost line" in w for w in model.warnings)
+
+
+def test_unpainted_lanes_off_stops_at_the_broken_line() -> None:
+    road = _without_line(make_road([straight(600.0)], gnss_noise=0.05, seed=42), 0)
+    cfg = LCFG.model_copy(update={"unpainted_lanes": False})
+    model = build_lane_model(road.cloud, find_candidates(road.cloud.xyz, MCFG), cfg)
+    assert [len(sec.boundary_ids) - 1 for sec in model.sections] == [2]
+    assert [b.mark_type for b in model.boundaries] == ["broken", "broken", "solid"]
+
+
+def test_implied_edges_need_a_measured_dash_pattern_and_a_long_run() -> None:
+    from lidar2xodr.unpainted_lanes import implied_edges
+
+    m = 200
+    t = np.array([np.full(m, 3.6), np.zeros(m), np.full(m, -3.4)])
+    on = np.ones_like(t, dtype=bool)
+    none_on, _ = implied_edges(on, t, np.array([False, False, False]), 1.0, LCFG)
+    assert none_on.shape == (0, m), "solid (or patternless) outermost lines imply nothing"
+    on_l, t_l = implied_edges(on, t, np.array([True, False, False]), 1.0, LCFG)
+    assert on_l.shape == (1, m) and np.allclose(t_l[0], 7.2), "left of the broken line at its neighbour's width"
+    on[0, 20:] = False  # the broken line is outermost only over 20 stations: shorter than a section
+    short_on, _ = implied_edges(on, t, np.array([True, False, False]), 1.0, LCFG)
+    assert short_on.shape == (0, m)
+    on[0] = True
+    on[2] = False
+    on_r, t_r = implied_edges(on, t, np.array([False, True, False]), 1.0, LCFG)
+    assert on_r.shape == (1, m) and np.allclose(t_r[0], -3.6), "right of the broken line when it is the rightmost"
+
+
+def test_unpainted_border_survives_lanes_json_and_is_written_without_a_mark(tmp_path: Path) -> None:
+    from lidar2xodr.config import ExportConfig
+    from lidar2xodr.export_opendrive import export_opendrive
+
+    road = _without_line(make_road([straight(600.0)], gnss_noise=0.05, seed=43), 0)
+    model = _build(road)
+    save_lanes(model, tmp_path / "lanes.json")
+    back = load_lanes(tmp_path / "lanes.json")
+    assert [b.mark_type for b in back.boundaries] == ["none", "broken", "broken", "solid"]
+    export_opendrive(back, None, ExportConfig(), tmp_path / "map.xodr")
+    import xml.etree.ElementTree as ET
+
+    lanes = ET.parse(tmp_path / "map.xodr").getroot().find("road/lanes/laneSection")
+    marks = {int(lane.get("id")): lane.find("roadMark").get("type") for lane in lanes.iter("lane")}
+    assert marks[0] == "none" and marks[-1] == "broken" and marks[-3] == "solid"

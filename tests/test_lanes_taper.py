@@ -86,7 +86,9 @@ def _width(model: LaneModel, sec_index: int, lane: int, s: float) -> float:
 @pytest.fixture(scope="module")
 def entry() -> tuple[LaneModel, float, float]:
     """An acceleration lane first seen 3.5 m wide at x = 200 whose solid edge closes onto the right
-    edge (broken 6 m / 6 m beside it) at x = 260 (3.3 deg); the edge goes on as the road's edge."""
+    edge (broken 6 m / 6 m beside it) at x = 260 (3.3 deg); the edge goes on as the road's edge.
+    The right edge is broken along the whole road, so before x = 200 the lane is there too, its
+    outer border unseen (a broken line has a lane on both sides); after the taper it is not."""
     rng = np.random.default_rng(5)
     line = _paint(rng, _taper_line(200.0, 260.0, 3.5), 200.0, 258.0, 0.30)
     cloud = _cloud([line], rng, right_dash=6.0)
@@ -97,10 +99,13 @@ def entry() -> tuple[LaneModel, float, float]:
 def test_entry_taper_is_an_entry_lane_that_closes_to_zero(entry: tuple[LaneModel, float, float]) -> None:
     model, s_wide, s_meet = entry
     counts = [len(sec.boundary_ids) - 1 for sec in model.sections]
-    assert counts == [2, 3, 2]
+    assert counts == [3, 3, 2]
     first, taper, last = model.sections
     assert taper.lane_types == ["driving", "driving", "entry"]
-    assert first.lane_types is None and last.lane_types is None
+    assert first.lane_types == ["driving", "driving", "entry"], "the entry lane before its outer line is seen"
+    kinds = {b.id: b.mark_type for b in model.boundaries}
+    assert kinds[first.boundary_ids[-1]] == "none" and kinds[taper.boundary_ids[-1]] == "solid"
+    assert last.lane_types is None, "no lane beyond the broken edge where the taper closed"
     assert abs(taper.s_start - s_wide) < 3.0, "the lane starts where its outer line is first seen"
     assert abs(taper.s_end - s_meet) < 3.0, "and ends where it meets the edge"
     assert _width(model, 1, 2, taper.s_start) == pytest.approx(3.5, abs=0.2)
@@ -115,13 +120,16 @@ def test_entry_taper_is_an_entry_lane_that_closes_to_zero(entry: tuple[LaneModel
 
 def test_exit_taper_is_an_exit_lane_that_opens_from_zero() -> None:
     """The mirror image: a solid line leaves the right edge at x = 240 and is last seen 3.5 m out at
-    x = 300."""
+    x = 300; beyond x = 300 the exit lane goes on beside the broken edge, its outer border unseen."""
     rng = np.random.default_rng(6)
     line = _paint(rng, _taper_line(300.0, 240.0, 3.5), 242.0, 300.0, 0.30)
     model = _build(_cloud([line], rng, right_dash=6.0))
-    assert [len(sec.boundary_ids) - 1 for sec in model.sections] == [2, 3, 2]
-    taper = model.sections[1]
+    assert [len(sec.boundary_ids) - 1 for sec in model.sections] == [2, 3, 3]
+    first, taper, last = model.sections
     assert taper.lane_types == ["driving", "driving", "exit"]
+    assert first.lane_types is None, "no lane beyond the broken edge before the exit lane opens"
+    assert last.lane_types == ["driving", "driving", "exit"]
+    assert {b.id: b.mark_type for b in model.boundaries}[last.boundary_ids[-1]] == "none"
     assert abs(taper.s_start - _station(model, 240.0)) < 3.0
     assert abs(taper.s_end - _station(model, 300.0)) < 3.0
     assert _width(model, 1, 2, taper.s_start) < 0.15
@@ -143,11 +151,11 @@ def test_guard_rail_beside_the_edge_and_clutter_make_no_lane() -> None:
 
 
 def test_a_taper_too_short_for_a_section_is_not_a_lane_but_noted() -> None:
-    """A converging line seen over 25 m (22 m of it over 0.5 m from the edge) that meets the edge 27 m
-    after it is first seen."""
+    """A converging line seen over 25 m (22 m of it over 0.5 m from the edge) that meets the solid
+    edge 27 m after it is first seen."""
     rng = np.random.default_rng(8)
     line = _paint(rng, _taper_line(200.0, 227.0, 2.7), 200.0, 225.0, 0.30)
-    model = _build(_cloud([line], rng, right_dash=6.0))
+    model = _build(_cloud([line], rng))
     assert [len(sec.boundary_ids) - 1 for sec in model.sections] == [2]
     assert any("makes no lane: shorter than 30 m" in w for w in model.warnings)
 
@@ -163,10 +171,12 @@ def test_lane_types_round_trip_and_reach_the_xodr(entry: tuple[LaneModel, float,
     root = etree.parse(str(tmp_path / "map.xodr")).getroot()
     kinds = [[lane.get("type") for lane in sec.iter("lane") if lane.get("id") != "0"]
              for sec in root.iter("laneSection")]
-    assert kinds == [["driving"] * 2, ["driving", "driving", "entry"], ["driving"] * 2]
-    entry_lane = [lane for lane in root.iter("lane") if lane.get("type") == "entry"][0]
-    first = entry_lane.find("width")
-    assert float(first.get("a")) == pytest.approx(3.5, abs=0.25), "opens at the width where first seen"
+    assert kinds == [["driving", "driving", "entry"], ["driving", "driving", "entry"], ["driving"] * 2]
+    sections = list(root.iter("laneSection"))
+    before, taper = ([lane for lane in sec.iter("lane") if lane.get("type") == "entry"][0] for sec in sections[:2])
+    assert before.find("roadMark").get("type") == "none", "its outer border was not seen before the taper"
+    assert float(before.find("width").get("a")) == pytest.approx(W, abs=0.1), "as wide as its neighbour"
+    assert taper.find("link/predecessor") is not None, "one lane through both sections"
 
 
 def test_old_lanes_json_loads_driving_and_bad_types_are_rejected(
@@ -188,17 +198,19 @@ def test_old_lanes_json_loads_driving_and_bad_types_are_rejected(
 @pytest.mark.slow
 def test_aimotive_sample_has_two_through_lanes_and_the_entry_lane(shared_data: Path) -> None:
     """Real drive (extraction ~20 s). The camera frames show the ego in the left of two lanes; right of
-    the short-dash line an acceleration lane whose solid edge converges onto that line (frame 65, ego at
-    x ~ 44 m) and is gone by frame 92 (x ~ 98 m). LiDAR sees that edge from x ~ 44 m; it meets the
-    short-dash line near x ~ 79 m."""
+    the short-dash line an acceleration lane (already there in the first frame, 43) whose solid edge
+    converges onto that line (frame 65, ego at x ~ 44 m) and is gone by frame 92 (x ~ 98 m). LiDAR
+    sees that edge from x ~ 44 m; it meets the short-dash line near x ~ 79 m. Before, the lane is
+    built beside the short-dash line with its outer border unseen."""
     from test_extraction import aimotive_cloud
 
     cloud, _ = aimotive_cloud(shared_data / "lidar" / "aimotive_highway_sample")
     model = build_lane_model(cloud, find_candidates(cloud.xyz, MarkingsConfig()), LCFG)
     counts = [len(sec.boundary_ids) - 1 for sec in model.sections]
-    assert counts == [2, 3, 2]
-    taper = model.sections[1]
-    assert taper.lane_types == ["driving", "driving", "entry"]
+    assert counts == [3, 3, 2]
+    before, taper, _ = model.sections
+    assert before.lane_types == taper.lane_types == ["driving", "driving", "entry"]
+    assert {b.id: b.mark_type for b in model.boundaries}[before.boundary_ids[-1]] == "none"
     x = np.asarray(model.reference)[:, 0]  # the drive's frame: x = 0 at the first scan, along the drive
     assert 35.0 <= np.interp(taper.s_start, model.s, x) <= 55.0 and 70.0 <= np.interp(taper.s_end, model.s, x) <= 90.0
     t = {b.id: b.t for b in model.boundaries}

@@ -85,7 +85,7 @@ from lidar2xodr.config import LanesConfig
 from lidar2xodr.data import MARK_TYPES, Boundary, Candidate, GeoOrigin, LaneModel, LaneSection, MarkingCloud
 from lidar2xodr.errors import InputError
 from lidar2xodr.fileio import write_text
-from lidar2xodr.unpainted_lanes import implied_edges
+from lidar2xodr.unpainted_lanes import implied_edges, type_implied_lanes
 
 FORMAT = "lidar2xodr.lanes/1"
 _CHUNK = 20000
@@ -1524,6 +1524,7 @@ def build_lane_model(
     divided = _divided_left(fit.t, structure.on, solid_rows)[first : first + len(model.s)]
     _mark_dividers(model, _ego_track(frame, ego, model), cfg, divided)
     _type_tapers(model, tapers, new_id, travel)
+    type_implied_lanes(model)
     counts = [len(sec.boundary_ids) - 1 for sec in model.sections]
     if len(set(counts)) > 1:
         model.warnings.append(

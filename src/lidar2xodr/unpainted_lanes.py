@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from lidar2xodr.config import LanesConfig
+from lidar2xodr.data import LaneModel
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
@@ -26,9 +27,25 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1), strict=False))
 
 
+def _taper_beside(on: np.ndarray, t: np.ndarray, b: int, side: float, s: int, e: int, narrow: float) -> bool:
+    """A lane beyond line b closes onto it just before station s, or opens from it at station e.
+
+    The line is outermost there because that lane ended (or has not begun): no lane lies beyond
+    it, whatever its paint (a broken entry line runs on a little past the taper's end)."""
+    for k in (s - 1, e):
+        if 0 <= k < on.shape[1]:
+            gap = side * (t[on[:, k], k] - t[b, k])
+            if np.any((gap > 0.0) & (gap < narrow)):
+                return True
+    return False
+
+
 def implied_edges(on: np.ndarray, t: np.ndarray, broken: np.ndarray, step: float,
                   cfg: LanesConfig) -> tuple[np.ndarray, np.ndarray]:
     """Outer borders of the lanes beyond broken outermost lines.
+
+    Not where a lane beyond the line has just closed onto it or is about to open from it (a
+    taper's end: the lane is known not to be there).
 
     on, t: (B, M) presence and lateral offset (left positive) of the kept lines at each station;
     broken: (B,) lines with a measured dash pattern. Returns (K, M) presence and offsets of the
@@ -54,7 +71,8 @@ def implied_edges(on: np.ndarray, t: np.ndarray, broken: np.ndarray, step: float
                 here = (outer == b) & on[b] & (count >= 2)
                 width = side * (t_on[b] - t_on[inner, np.arange(m)])
                 lane_like = here & (width >= cfg.min_lane_width_m) & (width <= cfg.max_lane_width_m)
-                runs = [(s, e) for s, e in _runs(here) if e - s >= min_run]
+                runs = [(s, e) for s, e in _runs(here)
+                        if e - s >= min_run and not _taper_beside(on, t, b, side, s, e, cfg.min_lane_width_m)]
                 if not runs or not lane_like.any():
                     continue
                 w = float(np.median(width[lane_like]))
@@ -66,3 +84,28 @@ def implied_edges(on: np.ndarray, t: np.ndarray, broken: np.ndarray, step: float
     if not rows_on:
         return np.zeros((0, m), dtype=bool), np.full((0, m), np.nan)
     return np.array(rows_on), np.array(rows_t)
+
+
+def type_implied_lanes(model: LaneModel) -> None:
+    """An unpainted lane that goes on as an entry or exit lane (a typed taper lane beyond the same
+    broken line in the next or previous section) is that lane: it takes its type."""
+    by_id = {b.id: b for b in model.boundaries}
+    secs = model.sections
+    for j, sec in enumerate(secs):
+        n = len(sec.boundary_ids) - 1
+        for k in (0, n - 1):
+            outer = sec.boundary_ids[k] if k == 0 else sec.boundary_ids[k + 1]
+            inner = sec.boundary_ids[k + 1] if k == 0 else sec.boundary_ids[k]
+            if by_id[outer].mark_type != "none":
+                continue
+            for nb in (j - 1, j + 1):
+                if not 0 <= nb < len(secs) or secs[nb].lane_types is None or inner not in secs[nb].boundary_ids:
+                    continue
+                ids = secs[nb].boundary_ids
+                i = ids.index(inner)
+                lane = i - 1 if k == 0 else i
+                if 0 <= lane < len(ids) - 1 and secs[nb].lane_types[lane] in ("entry", "exit"):
+                    types = sec.lane_types or ["driving"] * n
+                    types[k] = secs[nb].lane_types[lane]
+                    sec.lane_types = types
+                    break
