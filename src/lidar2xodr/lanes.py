@@ -1258,6 +1258,51 @@ def _type_tapers(model: LaneModel, tapers: list[_Taper], new_id: np.ndarray, tra
         )
 
 
+def _type_by_width(model: LaneModel, travel: int, cfg: LanesConfig) -> None:
+    """An outermost lane that opens from zero width where its section begins and is still at full
+    width where it ends, its outer line going on no further, is an exit lane (an entry lane
+    mirrored): its measured taper is its narrow end, and it leaves the road at its wide end (a
+    ramp's lane) rather than closing. Typed like `_type_tapers`' lanes, so it keeps its width
+    there instead of a taper being invented. A lane still widening at its end by
+    `branch_widening_m` is left to the junction builder (branches.find_events)."""
+    by_id = {b.id: b for b in model.boundaries}
+    secs = model.sections
+    for j, sec in enumerate(secs):
+        ids = sec.boundary_ids
+        n = len(ids) - 1
+        if n < 2:
+            continue
+        ks = np.flatnonzero((model.s >= sec.s_start - 1e-9) & (model.s <= sec.s_end + 1e-9))
+        if len(ks) < 10:
+            continue
+        for lane, outer in ((0, ids[0]), (n - 1, ids[-1])):
+            if lane == 0 and sec.divider_id is not None:
+                continue
+            if sec.lane_types is not None and sec.lane_types[lane] != "driving":
+                continue
+            w = by_id[ids[lane]].t[ks] - by_id[ids[lane + 1]].t[ks]
+            w = w[np.isfinite(w)]
+            if len(w) < 10:
+                continue
+            med = float(np.median(w))
+            if med < cfg.min_lane_width_m:
+                continue
+            new_before = j == 0 or outer not in secs[j - 1].boundary_ids
+            gone_after = j == len(secs) - 1 or outer not in secs[j + 1].boundary_ids
+            head, tail = float(np.mean(w[:3])), float(np.mean(w[-3:]))
+            opens = new_before and head < 0.5 * med and tail >= 0.8 * med
+            closes = gone_after and tail < 0.5 * med and head >= 0.8 * med
+            if opens and gone_after and j < len(secs) - 1 and tail <= med + cfg.branch_widening_m:
+                narrow_last = False
+            elif closes and new_before and j > 0:
+                narrow_last = True
+            else:
+                continue
+            types = list(sec.lane_types or ["driving"] * n)
+            types[lane] = "entry" if narrow_last == (travel > 0) else "exit"
+            sec.lane_types = types
+
+
 def _sections(
     on: np.ndarray, t: np.ndarray, s: np.ndarray, min_len: float
 ) -> tuple[list[LaneSection], np.ndarray, np.ndarray]:
@@ -1467,14 +1512,16 @@ def build_lane_model(
         t_ego = _ego_offsets(frame, ego)
         for _ in range(3):
             use = np.where(off, -1, label)
-            fit = _fit_boundaries(k_pt, t_pt, use, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)))
+            fit = _fit_boundaries(k_pt, t_pt, use, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)),
+                                  cfg.same_line_tolerance_m)
             root = _continuations(fit.t, int(round(cfg.line_join_gap_m / step)), cfg.same_line_tolerance_m,
                                   int(round(10.0 / step)))
             if np.any(root != np.arange(n_sl)):
                 label = np.where(label >= 0, root[np.maximum(label, 0)], -1)
                 use = np.where(off, -1, label)
                 superline = root[superline]
-                fit = _fit_boundaries(k_pt, t_pt, use, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)))
+                fit = _fit_boundaries(k_pt, t_pt, use, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)),
+                                  cfg.same_line_tolerance_m)
             crossing = _crossing_points(fit.t, use, k_pt, t_pt, cfg.assign_distance_m)
             short = np.isfinite(fit.t).sum(axis=1) * step < cfg.min_section_length_m
             n_short = int(np.sum(short & np.isfinite(fit.t).any(axis=1)))
@@ -1524,6 +1571,7 @@ def build_lane_model(
     divided = _divided_left(fit.t, structure.on, solid_rows)[first : first + len(model.s)]
     _mark_dividers(model, _ego_track(frame, ego, model), cfg, divided)
     _type_tapers(model, tapers, new_id, travel)
+    _type_by_width(model, travel, cfg)
     type_implied_lanes(model)
     counts = [len(sec.boundary_ids) - 1 for sec in model.sections]
     if len(set(counts)) > 1:
@@ -1563,6 +1611,7 @@ def _fit_boundaries(
     m: int,
     lam: float,
     gap: int,
+    parallel_m: float,
 ) -> _Fit:
     out = np.full((n_sl, m), np.nan)
     support = np.zeros(n_sl)
@@ -1577,7 +1626,7 @@ def _fit_boundaries(
             continue
         out[b], w, observed[b] = _robust_curve(kk[sl], tt[sl], m, lam)
         support[b] = float(w.sum())
-    _bridge_gaps(out, observed, gap)
+    _bridge_gaps(out, observed, gap, parallel_m)
     return _Fit(out, support)
 
 
@@ -1652,10 +1701,13 @@ def _gap_mismatch(t: np.ndarray, fin: np.ndarray, a: int, b: int, ea: int, sb: i
     return float(abs(np.polyval(fa, mid - ea) - np.polyval(fb, mid - sb)))
 
 
-def _bridge_gaps(t: np.ndarray, observed: np.ndarray, gap: int) -> None:
+def _bridge_gaps(t: np.ndarray, observed: np.ndarray, gap: int, parallel_m: float) -> None:
     """Across unobserved stretches longer than `gap` stations a line keeps its lane width to the
     neighbour best observed there (interpolated between the ends), instead of a straight chord in
-    the frame, which bends wherever the frame does."""
+    the frame, which bends wherever the frame does. Neighbours whose offset to the line changes
+    least across the gap (in steps of `parallel_m`) come first: one that diverges from the line
+    there (an exit lane's edge leaving where the edge line turns into a broken one) would carry
+    the bridge out with it."""
     for b in range(len(t)):
         fin = np.flatnonzero(np.isfinite(t[b]))
         if len(fin) == 0:
@@ -1669,8 +1721,11 @@ def _bridge_gaps(t: np.ndarray, observed: np.ndarray, gap: int) -> None:
             for nb in range(len(t)):
                 if nb == b or not np.all(np.isfinite(t[nb, g0 - 1 : g1 + 1])):
                     continue
-                key = (float(observed[nb, g0:g1].mean()), -abs(float(t[nb, g0] - t[b, g0])))
-                if key[0] >= 0.25 and (best_key is None or key > best_key):
+                drift = abs(float((t[b, g1] - t[nb, g1]) - (t[b, g0 - 1] - t[nb, g0 - 1])))
+                share = float(observed[nb, g0:g1].mean())
+                steps = int(drift / parallel_m) if math.isfinite(drift) else 0
+                key = (-steps, share, -abs(float(t[nb, g0] - t[b, g0])))
+                if share >= 0.25 and (best_key is None or key > best_key):
                     best, best_key = nb, key
             if best is None:
                 continue
