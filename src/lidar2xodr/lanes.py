@@ -92,6 +92,7 @@ _CHUNK = 20000
 _ABSENT_RUN = 20  # stations (m) a line must be seen to be absent before it is no longer carried
 _ALONG_SLOPE = 0.1  # lines joined across a gap run along the road there (within ~6 deg of the frame)
 _LINE_FRAME_GAIN = 1.5  # the longest line replaces the first frame only when this much more paint runs along it
+_FORK_BACK = (20, 60)  # stations before a fork whose offset to the neighbour a continuing line keeps through it
 _HOP_RADIUS_M = 500.0  # tightest curve a step beside another is allowed to follow (motorway minimum ~ 700 m)
 
 
@@ -1551,6 +1552,7 @@ def build_lane_model(
             label = np.where(nearest >= 0, active[np.maximum(nearest, 0)], -1)
         curves = _labelling_curves(sub.t, fit.t[active], cfg.same_line_tolerance_m)
         curves = _hold_ends(curves, int(round(100.0 / step)), cfg.same_line_tolerance_m)
+        curves = _fork_curves(curves, sub.on, cfg.min_lane_width_m)
         nearest = _label_by_distance(k_pt, t_pt, inside, curves, cfg)
         label = np.where(nearest >= 0, active[np.maximum(nearest, 0)], -1)
         if it < 2:
@@ -2028,6 +2030,66 @@ def _hold_ends(curves: np.ndarray, reach: int, tol: float) -> np.ndarray:
                 if k < 0 or k >= m or np.any(np.abs(others[:, k] - c[end]) < tol):
                     break
                 out[b, k] = c[end]
+    return out
+
+
+def _fork_curves(curves: np.ndarray, on: np.ndarray, min_width: float) -> np.ndarray:
+    """Labelling curves at forks: where a kept line q begins (ends) within `min_width` of a line r
+    that goes on past it (an exit lane's edge leaving the carriageway's edge, an entry's joining
+    it), r is taken parallel to its neighbour p on its other side, at its offset to p 20-60 m
+    before (after) the fork (`_FORK_BACK`: where q's paint, which starts leaving r before q is
+    kept, has not bent r yet), for as long as q stays within `min_width` of that course; and q is
+    carried on straight (its first 20 stations' slope against that course) back to where it meets
+    the course, since its paint leaves r before q is kept. The paint of r there (the broken line
+    the edge turns into) is then found again, and q's paint, which the fitted r had been bent
+    towards, goes to q."""
+    out = curves.copy()
+    b_n, m = curves.shape
+    fin = np.isfinite(curves) & on
+    for q in range(b_n):
+        ks = np.flatnonzero(fin[q])
+        if len(ks) == 0:
+            continue
+        for end, step in ((int(ks[0]), 1), (int(ks[-1]), -1)):
+            before = end - step
+            if not 0 <= before < m:
+                continue
+            for r in range(b_n):
+                if r == q or not (fin[r, before] and fin[r, end]) or abs(curves[q, end] - curves[r, end]) >= min_width:
+                    continue
+                along = ks[:20] if step > 0 else ks[-20:]
+                side = float(np.sign(np.nanmedian(curves[q, along] - curves[r, along])))
+                if side == 0.0:
+                    continue
+                others = [p for p in range(b_n) if p not in (q, r) and fin[p, before] and fin[p, end]
+                          and np.sign(curves[p, end] - curves[r, end]) == -side]
+                if not others:
+                    continue
+                p = min(others, key=lambda x: abs(curves[x, end] - curves[r, end]))
+                back = np.arange(end - step * _FORK_BACK[1], end - step * _FORK_BACK[0], step)
+                back = back[(back >= 0) & (back < m)]
+                back = back[fin[r, back] & fin[p, back]]
+                if len(back) == 0:
+                    continue
+                offset = float(np.median(curves[r, back] - curves[p, back]))
+                k = end
+                while 0 <= k < m and fin[q, k] and fin[p, k]:
+                    course = curves[p, k] + offset
+                    if abs(curves[q, k] - course) >= min_width:
+                        break
+                    out[r, k] = course
+                    k += step
+                first = ks[:20] if step > 0 else ks[-20:]
+                rel = curves[q, first] - (curves[p, first] + offset)
+                slope = np.polyfit(first.astype(float), rel, 1)[0] if len(first) >= 5 else 0.0
+                k = end - step
+                while 0 <= k < m and fin[p, k] and fin[r, k] and abs(slope) > 1e-3:
+                    gap = float(rel[0] if step > 0 else rel[-1]) - slope * (end - k)
+                    if gap * side <= 0.1:
+                        break
+                    out[r, k] = curves[p, k] + offset
+                    out[q, k] = curves[p, k] + offset + gap
+                    k -= step
     return out
 
 
