@@ -1,0 +1,81 @@
+"""Exits where the edge line leaves with the exit lane and the through lane's edge turns into a
+broken line: gap bridging, fork labelling and the exit lane kept at full width (issue #13)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lidar2xodr.config import LanesConfig
+from lidar2xodr.data import Boundary, LaneModel, LaneSection
+from lidar2xodr.lanes import _bridge_gaps, _fork_curves, _type_by_width
+
+M = 300
+
+
+def test_a_gap_is_bridged_along_the_neighbour_that_stays_parallel() -> None:
+    """Line 0 is unobserved on stations 100-199; line 1 (0.3 of it observed) stays 3.5 m away, line 2
+    (fully observed) diverges from line 0 there. The bridge keeps line 0 3.5 m from line 1."""
+    k = np.arange(M, dtype=float)
+    parallel = 0.01 * k
+    edge = parallel - 3.5
+    leaving = np.where(k < 100, edge, edge - 0.05 * (k - 100)).clip(min=edge - 3.5)
+    t = np.vstack([np.where((k < 100) | (k >= 200), edge, edge - 1.0), parallel, leaving])
+    observed = np.ones_like(t, dtype=bool)
+    observed[0, 100:200] = False
+    observed[1] = (k % 18) < 6
+    _bridge_gaps(t, observed, 20, 0.5)
+    assert np.allclose(t[0, 100:200], edge[100:200], atol=1e-9)
+
+
+def test_fork_labelling_keeps_the_edge_on_its_course_and_carries_the_leaving_line_back() -> None:
+    """An edge r bent towards a line q that is kept from station 150 and leaves it at 0.05 m/m: r's
+    labelling curve follows its inner neighbour p at the offset it had well before the fork; q is
+    carried back straight to where it meets that course."""
+    k = np.arange(M, dtype=float)
+    p = np.zeros(M)
+    course = np.full(M, -3.5)
+    q = np.where(k >= 150, -3.5 - 0.05 * (k - 130), np.nan)
+    bent = np.where(k >= 135, -3.5 - 0.02 * (k - 135), -3.5)
+    curves = np.vstack([bent, p, q])
+    on = np.isfinite(curves)
+    out = _fork_curves(curves, on, 2.5)
+    zone = (k >= 150) & (-3.5 - 0.05 * (k - 130) > -3.5 - 2.5)
+    assert np.allclose(out[0, zone], course[zone]), "the edge keeps its course through the fork"
+    assert np.allclose(out[0, :130], bent[:130]) and np.allclose(out[1], p)
+    back = (k >= 133) & (k < 150)
+    assert np.allclose(out[2, back], -3.5 - 0.05 * (k[back] - 130)), "q goes on straight back to the edge"
+    assert np.isnan(out[2, 125])
+
+
+def _model(widths_exit: np.ndarray) -> LaneModel:
+    """Two through lanes (ids 0-2); an exit lane beyond id 2 (outer line id 3) on stations 100-199."""
+    s = np.arange(M, dtype=float)
+    b = [Boundary(0, np.full(M, 3.5), "solid"), Boundary(1, np.zeros(M), "broken"),
+         Boundary(2, np.full(M, -3.5), "broken"),
+         Boundary(3, np.where((s >= 100) & (s < 200), -3.5 - widths_exit, np.nan), "solid")]
+    secs = [LaneSection(0.0, 100.0, [0, 1, 2]), LaneSection(100.0, 200.0, [0, 1, 2, 3]),
+            LaneSection(200.0, 299.0, [0, 1, 2])]
+    return LaneModel(s=s, reference=np.column_stack([s, np.zeros(M), np.zeros(M)]), boundaries=b, sections=secs)
+
+
+def test_a_lane_opening_from_zero_and_leaving_at_full_width_is_an_exit_lane() -> None:
+    s = np.arange(M, dtype=float)
+    model = _model(np.clip((s - 100) / 60.0, 0.0, 1.0) * 3.5)
+    _type_by_width(model, 1, LanesConfig())
+    assert [sec.lane_types for sec in model.sections] == [None, ["driving", "driving", "exit"], None]
+    mirrored = _model(np.clip((s - 100) / 60.0, 0.0, 1.0) * 3.5)
+    _type_by_width(mirrored, -1, LanesConfig())
+    assert mirrored.sections[1].lane_types == ["driving", "driving", "entry"], "driven against s"
+
+
+def test_a_full_lane_or_one_that_closes_again_is_left_alone() -> None:
+    s = np.arange(M, dtype=float)
+    full = _model(np.full(M, 3.5))
+    _type_by_width(full, 1, LanesConfig())
+    assert full.sections[1].lane_types is None, "appears at full width: a merge for the junction builder"
+    both = _model(np.minimum(np.clip((s - 100) / 40.0, 0, 1), np.clip((199 - s) / 40.0, 0, 1)) * 3.5)
+    _type_by_width(both, 1, LanesConfig())
+    assert both.sections[1].lane_types is None, "opens and closes inside the road: an added lane"
+    widening = _model(np.clip((s - 100) / 60.0, 0.0, 1.0) * 3.5 + np.clip((s - 180) / 10.0, 0.0, 2.0))
+    _type_by_width(widening, 1, LanesConfig())
+    assert widening.sections[1].lane_types is None, "still widening at its end: a diverge"
