@@ -2033,16 +2033,25 @@ def _hold_ends(curves: np.ndarray, reach: int, tol: float) -> np.ndarray:
     return out
 
 
+def _outermost(curves: np.ndarray, fin: np.ndarray, row: int, ks: np.ndarray, side: float) -> bool:
+    """No other kept line lies beyond `row` on `side` at stations ks."""
+    with np.errstate(invalid="ignore"):
+        beyond = fin[:, ks] & (side * (curves[:, ks] - curves[row, ks][None, :]) > 0.1)
+    beyond[row] = False
+    return not bool(beyond.any())
+
+
 def _fork_curves(curves: np.ndarray, on: np.ndarray, min_width: float) -> np.ndarray:
-    """Labelling curves at forks: where a kept line q begins (ends) within `min_width` of a line r
-    that goes on past it (an exit lane's edge leaving the carriageway's edge, an entry's joining
-    it), r is taken parallel to its neighbour p on its other side, at its offset to p 20-60 m
-    before (after) the fork (`_FORK_BACK`: where q's paint, which starts leaving r before q is
-    kept, has not bent r yet), for as long as q stays within `min_width` of that course; and q is
-    carried on straight (its first 20 stations' slope against that course) back to where it meets
-    the course, since its paint leaves r before q is kept. The paint of r there (the broken line
-    the edge turns into) is then found again, and q's paint, which the fitted r had been bent
-    towards, goes to q."""
+    """Labelling curves at forks: where a kept line q begins (ends) within `min_width` of a line r that goes on
+    past it at the carriageway's edge (r outermost before the fork, q outermost after it: an exit lane's
+    edge leaving the edge line, an entry's joining it; not a line inside the carriageway, such as a 2+1
+    road's centre line moving across), r is taken parallel to its neighbour p on its other side, at its
+    offset to p 20-60 m before (after) the fork (`_FORK_BACK`: where q's paint, which starts leaving r
+    before q is kept, has not bent r yet), for as long as q stays within `min_width` of that course; and
+    q is carried on straight (its first 20 stations' slope against that course) back to where it meets
+    the course, since its paint leaves r before q is kept. The paint of r there (the broken line the
+    edge turns into) is then found again, and q's paint, which the fitted r had been bent towards, goes
+    to q."""
     out = curves.copy()
     b_n, m = curves.shape
     fin = np.isfinite(curves) & on
@@ -2059,7 +2068,8 @@ def _fork_curves(curves: np.ndarray, on: np.ndarray, min_width: float) -> np.nda
                     continue
                 along = ks[:20] if step > 0 else ks[-20:]
                 side = float(np.sign(np.nanmedian(curves[q, along] - curves[r, along])))
-                if side == 0.0:
+                if side == 0.0 or not _outermost(curves, fin, q, along, side) \
+                        or not _outermost(curves, fin, r, np.array([before]), side):
                     continue
                 others = [p for p in range(b_n) if p not in (q, r) and fin[p, before] and fin[p, end]
                           and np.sign(curves[p, end] - curves[r, end]) == -side]
