@@ -98,3 +98,29 @@ def test_corridor_is_reproducible_and_a_valid_network(tmp_path: Path) -> None:
     assert len(driving) >= 3 and sum(len(s) for s in graph.succ) > 0
     other = corridors.write_corridor(4, tmp_path / "c.xodr", length_m=2500.0)
     assert other.curves != spec.curves
+
+
+def test_changes_against_an_earlier_sweep_list_worse_cases_first(tmp_path: Path) -> None:
+    todo = [{"map": m, "seed": 1, "length_m": 1000.0} for m in ("a", "b", "c", "d")]
+    old = tmp_path / "old" / "rows"
+    before = [_row("a"), _row("b"), _row("c", lane_count=0.5), _row("d")]
+    for case, row in zip(todo, before, strict=True):
+        sweep._store(old / f"{sweep.case_id(case)}.json", {"commit": "x"}, row)
+    now = [_row("a", boundaries_rmse=0.051), _row("b", lane_graph=0.9), _row("c", lane_count=1.0),
+           {"map": "d", "seed": 1, "error": "build: no road"}]
+    items = sweep.changes(now, old, todo)
+    assert [x["case"] for x in items] == ["b-s1-1000m", "d-s1-1000m", "c-s1-1000m"], "within tolerance: a"
+    assert items[0]["worse"] == ["lane_graph 1.000 -> 0.900"] and items[2]["better"] == ["lane_count 0.500 -> 1.000"]
+    assert items[1]["worse"] == ["built -> build: no road"]
+    assert "3 (2 with a metric worse)" in sweep.format_changes(items)
+
+
+def test_drives_are_reused_only_from_finished_cases(tmp_path: Path) -> None:
+    case = {"map": "a", "seed": 1, "length_m": 1000.0}
+    first, second = tmp_path / "one", tmp_path / "two"
+    for folder in (first, second):
+        (folder / "cases" / sweep.case_id(case) / "drive").mkdir(parents=True)
+        (folder / "cases" / sweep.case_id(case) / "drive" / "meta.yaml").write_text("format: lidar2xodr-drive\n")
+    assert sweep.reused_drive(case, [first, second]) is None, "no row: the drive may be half simulated"
+    sweep._store(second / "rows" / f"{sweep.case_id(case)}.json", {"commit": "x"}, _row("a"))
+    assert sweep.reused_drive(case, [first, second]) == second / "cases" / sweep.case_id(case) / "drive"
