@@ -33,6 +33,7 @@ import json
 import statistics
 import subprocess
 import sys
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -101,6 +102,9 @@ def case_id(case: dict) -> str:
     return f"{case['map']}-s{case['seed']}-{case['length_m']:g}m"
 
 
+_CORRIDOR_LOCK = threading.Lock()
+
+
 def reused_drive(case: dict, drives_from: list[Path]) -> Path | None:
     """The drive of this case in an earlier sweep's output, when that case finished there (its row exists)."""
     for folder in drives_from:
@@ -120,15 +124,16 @@ def run_case(case: dict, out: Path, commit: str, force: bool, drives_from: list[
         if old.get("key") == key:
             return old["row"]
     t0 = time.perf_counter()
-    if case["kind"] == "corridor" and not Path(case["xodr"]).exists():
-        from corridors import write_corridor
+    with _CORRIDOR_LOCK:  # both seeds of a corridor share its map: with --jobs 2 they raced to write it
+        if case["kind"] == "corridor" and not Path(case["xodr"]).exists():
+            from corridors import write_corridor
 
-        try:
-            write_corridor(case["corridor"], Path(case["xodr"]))
-        except Exception as exc:  # noqa: BLE001 - a corridor roadgen refuses is a row, not a crash
-            row = {"map": case["map"], "seed": case["seed"], "error": f"corridor: {exc}".splitlines()[0][:200]}
-            _store(row_path, key, row)
-            return row
+            try:
+                write_corridor(case["corridor"], Path(case["xodr"]))
+            except Exception as exc:  # noqa: BLE001 - a corridor roadgen refuses is a row, not a crash
+                row = {"map": case["map"], "seed": case["seed"], "error": f"corridor: {exc}".splitlines()[0][:200]}
+                _store(row_path, key, row)
+                return row
     row = bench_map(case["map"], Path(case["xodr"]), out / "cases", case["length_m"], LANE_COUNT_MIN,
                     seed=case["seed"], case=case_id(case), drive=reused_drive(case, drives_from or []))
     row.update(kind=case["kind"], case_s=round(time.perf_counter() - t0, 1))

@@ -554,16 +554,19 @@ def test_implied_edges_need_a_measured_dash_pattern_and_a_long_run() -> None:
     m = 200
     t = np.array([np.full(m, 3.6), np.zeros(m), np.full(m, -3.4)])
     on = np.ones_like(t, dtype=bool)
-    none_on, _ = implied_edges(on, t, np.array([False, False, False]), 1.0, LCFG)
+    edge = np.array([False, False, True])
+    none_on, _ = implied_edges(on, t, np.array([False, False, False]), edge, 1.0, LCFG)
     assert none_on.shape == (0, m), "solid (or patternless) outermost lines imply nothing"
-    on_l, t_l = implied_edges(on, t, np.array([True, False, False]), 1.0, LCFG)
+    on_l, t_l = implied_edges(on, t, np.array([True, False, False]), edge, 1.0, LCFG)
     assert on_l.shape == (1, m) and np.allclose(t_l[0], 7.2), "left of the broken line at its neighbour's width"
+    two_way, _ = implied_edges(on, t, np.array([True, True, True]), np.zeros(3, dtype=bool), 1.0, LCFG)
+    assert two_way.shape == (0, m), "no solid edge seen: the lane beyond may be the opposite direction's"
     on[0, 20:] = False  # the broken line is outermost only over 20 stations: shorter than a section
-    short_on, _ = implied_edges(on, t, np.array([True, False, False]), 1.0, LCFG)
+    short_on, _ = implied_edges(on, t, np.array([True, False, False]), edge, 1.0, LCFG)
     assert short_on.shape == (0, m)
     on[0] = True
     on[2] = False
-    on_r, t_r = implied_edges(on, t, np.array([False, True, False]), 1.0, LCFG)
+    on_r, t_r = implied_edges(on, t, np.array([False, True, False]), np.array([True, False, False]), 1.0, LCFG)
     assert on_r.shape == (1, m) and np.allclose(t_r[0], -3.6), "right of the broken line when it is the rightmost"
 
 

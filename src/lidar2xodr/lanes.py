@@ -2226,7 +2226,8 @@ def _assemble(
     if cfg.unpainted_lanes:
         broken = np.array([kind == "broken" and dash is not None and gap is not None
                            for kind, dash, gap in patterns], dtype=bool)
-        extra_on, extra_t = implied_edges(rows_on, rows_t, broken, step, cfg)
+        solid = np.array([kind == "solid" for kind, _, _ in patterns], dtype=bool)
+        extra_on, extra_t = implied_edges(rows_on, rows_t, broken, solid, step, cfg)
         if len(extra_on):
             rows_on, rows_t = np.vstack([rows_on, extra_on]), np.vstack([rows_t, extra_t])
             rows += [Boundary(id=-1, t=row, mark_type="none", mark_width=0.0) for row in extra_t]

@@ -40,15 +40,19 @@ def _taper_beside(on: np.ndarray, t: np.ndarray, b: int, side: float, s: int, e:
     return False
 
 
-def implied_edges(on: np.ndarray, t: np.ndarray, broken: np.ndarray, step: float,
+def implied_edges(on: np.ndarray, t: np.ndarray, broken: np.ndarray, solid: np.ndarray, step: float,
                   cfg: LanesConfig) -> tuple[np.ndarray, np.ndarray]:
     """Outer borders of the lanes beyond broken outermost lines.
 
-    Not where a lane beyond the line has just closed onto it or is about to open from it (a
-    taper's end: the lane is known not to be there).
+    Only where the carriageway's outermost line on the other side is a solid edge line: the
+    carriageway is then known to lie on this side of that edge, so the lane beyond the broken
+    line is one of its own. Without a seen edge the broken line may be the centre line of a
+    two-way road (town roads with curbs and no edge paint), and the lane beyond it the opposite
+    direction's. Not where a lane beyond the line has just closed onto it or is about to open
+    from it (a taper's end: the lane is known not to be there).
 
     on, t: (B, M) presence and lateral offset (left positive) of the kept lines at each station;
-    broken: (B,) lines with a measured dash pattern. Returns (K, M) presence and offsets of the
+    broken: (B,) lines with a measured dash pattern; solid: (B,) solid lines. Returns (K, M) presence and offsets of the
     implied borders, one row per (broken line, side) that is outermost over at least
     `min_section_length_m`; K may be 0.
     """
@@ -67,8 +71,10 @@ def implied_edges(on: np.ndarray, t: np.ndarray, broken: np.ndarray, step: float
             inner_key = key.copy()
             inner_key[outer, np.arange(m)] = -np.inf
             inner = np.argmax(inner_key, axis=0)
+            far_edge = np.argmax(np.where(on, -side * t, -np.inf), axis=0)
+            edged = solid[far_edge]
             for b in np.flatnonzero(broken):
-                here = (outer == b) & on[b] & (count >= 2)
+                here = (outer == b) & on[b] & (count >= 2) & edged
                 width = side * (t_on[b] - t_on[inner, np.arange(m)])
                 lane_like = here & (width >= cfg.min_lane_width_m) & (width <= cfg.max_lane_width_m)
                 runs = [(s, e) for s, e in _runs(here)
