@@ -1522,7 +1522,7 @@ def build_lane_model(
                 use = np.where(off, -1, label)
                 superline = root[superline]
                 fit = _fit_boundaries(k_pt, t_pt, use, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)),
-                                  cfg.same_line_tolerance_m)
+                                      cfg.same_line_tolerance_m)
             crossing = _crossing_points(fit.t, use, k_pt, t_pt, cfg.assign_distance_m)
             short = np.isfinite(fit.t).sum(axis=1) * step < cfg.min_section_length_m
             n_short = int(np.sum(short & np.isfinite(fit.t).any(axis=1)))
