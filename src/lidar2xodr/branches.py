@@ -44,14 +44,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from lidar2xodr.config import LanesConfig, MarkingsConfig
-from lidar2xodr.data import LaneModel, LaneSection, MarkingCloud, RoadLink, RoadNetwork
+from lidar2xodr.data import TAPER_LANE_TYPES, LaneModel, LaneSection, MarkingCloud, RoadLink, RoadNetwork
 from lidar2xodr.errors import InputError
 
 _NORMAL_MARGIN_M = 0.3
 _NEW_LANE_SHARE = 0.7
 _GORE_M = 15.0
 _MAX_HEADING_DEG = 30.0
-_TAPER_TYPES = ("entry", "exit")  # lanes of the road itself that end or begin in a taper (lanes stage)
 
 
 @dataclass
@@ -90,7 +89,7 @@ def find_events(model: LaneModel, cfg: LanesConfig) -> list[Event]:
         if len(ks) < 6:
             continue
         for lane, side in _outer_lanes(sec):
-            if sec.lane_types is not None and sec.lane_types[lane] in _TAPER_TYPES:
+            if sec.lane_types is not None and sec.lane_types[lane] in TAPER_LANE_TYPES:
                 continue
             w = _lane_width(model, sec, lane, ks)
             ok = np.isfinite(w)

@@ -100,6 +100,8 @@ class Candidate:
 
 
 MARK_TYPES = ("solid", "broken", "none")
+TAPER_LANE_TYPES = ("entry", "exit")
+"""Lane types of a road's own lanes that begin or end in a taper (LaneSection.lane_types)."""
 
 
 @dataclass

@@ -148,7 +148,7 @@ from scipy.ndimage import median_filter
 from scipy.spatial import cKDTree
 
 from lidar2xodr.config import ExportConfig
-from lidar2xodr.data import MARK_TYPES, Boundary, GroundPlanes, LaneModel, RoadLink, RoadNetwork
+from lidar2xodr.data import MARK_TYPES, TAPER_LANE_TYPES, Boundary, GroundPlanes, LaneModel, RoadLink, RoadNetwork
 from lidar2xodr.errors import InputError
 from lidar2xodr.export_sections import fold_appearing_lanes
 from lidar2xodr.fileio import write_bytes
@@ -160,7 +160,6 @@ _GL_W = 0.5 * _GL_W
 _GEOMETRY_SMOOTH = 1e-6  # P-spline penalty that only bridges data gaps (geometry, widths, elevation)
 _LINK_MIN_OVERLAP_M = 0.3
 _WHERE = "lane model"
-_TAPER_TYPES = ("entry", "exit")  # lanes that end or begin in a taper (LaneSection.lane_types)
 _CUT_EPS = 1e-9
 
 
@@ -609,7 +608,7 @@ def _lane_fit(grid_s: np.ndarray, t_data: dict[int, np.ndarray],
             cons: list[tuple[float, ...]] = []
             opens = j > 0 and i not in preds[j] or j == 0 and start is not None and i in start.zero
             ends = j < last and i not in succs[j] or j == last and end is not None and i in end.zero
-            if types is not None and types[i] in _TAPER_TYPES:
+            if types is not None and types[i] in TAPER_LANE_TYPES:
                 wide = 0.5 * float(np.max(w))
                 opens = opens and float(np.mean(w[s <= s0 + 5.0])) < wide
                 ends = ends and float(np.mean(w[s >= s1 - 5.0])) < wide

@@ -85,7 +85,6 @@ from lidar2xodr.config import LanesConfig
 from lidar2xodr.data import MARK_TYPES, Boundary, Candidate, GeoOrigin, LaneModel, LaneSection, MarkingCloud
 from lidar2xodr.errors import InputError
 from lidar2xodr.fileio import write_text
-from lidar2xodr.unpainted_lanes import implied_edges, type_implied_lanes
 
 FORMAT = "lidar2xodr.lanes/1"
 _CHUNK = 20000
@@ -1574,6 +1573,8 @@ def build_lane_model(
     _mark_dividers(model, _ego_track(frame, ego, model), cfg, divided)
     _type_tapers(model, tapers, new_id, travel)
     _type_by_width(model, travel, cfg)
+    from lidar2xodr.unpainted_lanes import type_implied_lanes
+
     type_implied_lanes(model)
     counts = [len(sec.boundary_ids) - 1 for sec in model.sections]
     if len(set(counts)) > 1:
@@ -2224,6 +2225,7 @@ def _assemble(
     ]
     rows_on, rows_t = on[ordered], t[ordered]
     if cfg.unpainted_lanes:
+        from lidar2xodr.unpainted_lanes import implied_edges  # it uses this module's helpers
         broken = np.array([kind == "broken" and dash is not None and gap is not None
                            for kind, dash, gap in patterns], dtype=bool)
         solid = np.array([kind == "solid" for kind, _, _ in patterns], dtype=bool)

@@ -19,12 +19,8 @@ from __future__ import annotations
 import numpy as np
 
 from lidar2xodr.config import LanesConfig
-from lidar2xodr.data import LaneModel
-
-
-def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
-    return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1), strict=False))
+from lidar2xodr.data import TAPER_LANE_TYPES, LaneModel
+from lidar2xodr.lanes import _runs
 
 
 def _taper_beside(on: np.ndarray, t: np.ndarray, b: int, side: float, s: int, e: int, narrow: float) -> bool:
@@ -52,9 +48,9 @@ def implied_edges(on: np.ndarray, t: np.ndarray, broken: np.ndarray, solid: np.n
     from it (a taper's end: the lane is known not to be there).
 
     on, t: (B, M) presence and lateral offset (left positive) of the kept lines at each station;
-    broken: (B,) lines with a measured dash pattern; solid: (B,) solid lines. Returns (K, M) presence and offsets of the
-    implied borders, one row per (broken line, side) that is outermost over at least
-    `min_section_length_m`; K may be 0.
+    broken: (B,) lines with a measured dash pattern; solid: (B,) solid lines. Returns (K, M)
+    presence and offsets of the implied borders, one row per (broken line, side) that is
+    outermost over at least `min_section_length_m`; K may be 0.
     """
     b_n, m = on.shape
     rows_on: list[np.ndarray] = []
@@ -110,7 +106,7 @@ def type_implied_lanes(model: LaneModel) -> None:
                 ids = secs[nb].boundary_ids
                 i = ids.index(inner)
                 lane = i - 1 if k == 0 else i
-                if 0 <= lane < len(ids) - 1 and secs[nb].lane_types[lane] in ("entry", "exit"):
+                if 0 <= lane < len(ids) - 1 and secs[nb].lane_types[lane] in TAPER_LANE_TYPES:
                     types = sec.lane_types or ["driving"] * n
                     types[k] = secs[nb].lane_types[lane]
                     sec.lane_types = types
