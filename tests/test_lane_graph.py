@@ -22,10 +22,11 @@ LANE = 3.5
 SLIVER = 0.54
 
 
-def _lane(lid: int, width: float, kind: str = "driving", pred: int | None = None, succ: int | None = None) -> str:
+def _lane(lid: int, width: float, kind: str = "driving", pred: int | None = None, succ: int | None = None,
+          widening: float = 0.0) -> str:
     link = "".join(f'<{tag} id="{v}"/>' for tag, v in (("predecessor", pred), ("successor", succ)) if v is not None)
     return (f'<lane id="{lid}" type="{kind}" level="false"><link>{link}</link>'
-            f'<width sOffset="0" a="{width}" b="0" c="0" d="0"/></lane>')
+            f'<width sOffset="0" a="{width}" b="{widening}" c="0" d="0"/></lane>')
 
 
 def _section(s: float, right: list[str], left: list[str] | None = None) -> str:
@@ -222,16 +223,39 @@ def test_a_zero_width_placeholder_is_no_part_of_the_taper_chain(tmp_path: Path) 
         assert start_d[g.index[("1", 1, -1)]] == pytest.approx(61.0)
 
 
-def test_a_break_where_the_reference_is_not_evaluated_is_still_counted(tmp_path: Path) -> None:
+def test_a_reference_lane_starts_where_it_is_evaluated(tmp_path: Path) -> None:
     """The generated lane -2 loses its link at s = 50, inside the reference lane's 1 m wide first
-    100 m (not evaluated): the break is counted where the evaluated length it makes wrong begins."""
+    100 m (not evaluated, no lane a vehicle drives in): the reference lane starts at s = 100, where
+    the generated lane -2 holds it; a link lost at s = 150, inside the evaluated length, breaks."""
     ref = _write(tmp_path / "ref.xodr", _road("1", 300.0, [
         _section(0, [_lane(-1, LANE, succ=-1), _lane(-2, 1.0, succ=-2)]),
-        _section(100, [_lane(-1, LANE, pred=-1), _lane(-2, LANE, pred=-2)])]))
-    gen = _write(tmp_path / "gen.xodr", _road("1", 300.0, [
+        _section(100, [_lane(-1, LANE, pred=-1, succ=-1), _lane(-2, LANE, pred=-2, succ=-2)]),
+        _section(150, [_lane(-1, LANE, pred=-1), _lane(-2, LANE, pred=-2)])]))
+    early = _write(tmp_path / "early.xodr", _road("1", 300.0, [
         _section(0, [_lane(-1, LANE, succ=-1), _lane(-2, LANE)]),
         _section(50, [_lane(-1, LANE, pred=-1), _lane(-2, LANE)])]))
-    graph = compare_maps(gen, ref, CFG)["lane_graph"]
-    assert graph["breaks"] == 1 and graph["breaks_at"][0]["x"] == pytest.approx(100.0, abs=0.6)
-    assert graph["off_route_m"] == pytest.approx(200.0, abs=1.0)
+    graph = compare_maps(early, ref, CFG)["lane_graph"]
+    assert graph["breaks"] == 0 and graph["agreement"] == pytest.approx(1.0)
     assert graph["eval_length_m"] == pytest.approx(500.0, abs=1.0)
+    late = _write(tmp_path / "late.xodr", _road("1", 300.0, [
+        _section(0, [_lane(-1, LANE, succ=-1), _lane(-2, LANE)]),
+        _section(150, [_lane(-1, LANE, pred=-1), _lane(-2, LANE)])]))
+    graph = compare_maps(late, ref, CFG)["lane_graph"]
+    assert graph["breaks"] == 1 and graph["breaks_at"][0]["x"] == pytest.approx(150.0, abs=0.6)
+    assert graph["off_route_m"] == pytest.approx(150.0, abs=1.0)
+
+
+def test_an_opening_lane_whose_sliver_falls_into_its_neighbour_does_not_break(tmp_path: Path) -> None:
+    """two_plus_one's inner lane opens from zero width beside the centre line (s 100-150) while the
+    through lane moves out to -2. The generated map has the same lanes and links, its opening 5 m
+    later: the reference sliver's first samples fall into the generated -1, then -2, then the new
+    -1 (not linked from -2). The sliver is no lane yet; the route starts where it is one."""
+    def road(start: float, length: float) -> str:
+        return _road("1", 300.0, [
+            _section(0, [_lane(-1, LANE, succ=-2)]),
+            _section(start, [_lane(-1, 0.0, succ=-1, widening=LANE / length), _lane(-2, LANE, pred=-1, succ=-2)]),
+            _section(start + length, [_lane(-1, LANE, pred=-1), _lane(-2, LANE, pred=-2)])])
+    ref = _write(tmp_path / "ref.xodr", road(100.0, 50.0))
+    gen = _write(tmp_path / "gen.xodr", road(105.0, 45.0))
+    graph = compare_maps(gen, ref, CFG)["lane_graph"]
+    assert graph["breaks"] == 0 and graph["agreement"] == pytest.approx(1.0, abs=0.01)

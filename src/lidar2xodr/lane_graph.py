@@ -24,7 +24,10 @@ Rule (the evaluation docstring and the README quote it):
 4. The route is the set of generated lanes the vehicle may be in. A sample AGREES when one of its
    holding lanes is on the route or a linked successor of it (successors through sections shorter
    than two steps are followed on), and that lane is full; the route becomes those lanes. With no
-   route yet (a reference lane's start) every holding lane starts it. When no holding lane is on the
+   route yet (a reference lane's start) every holding lane starts it; a reference lane starts at
+   its first evaluated sample (one that opens from zero width: before it, along its opening taper,
+   a sliver whose samples fall into either generated neighbour by centimetres, the holding lanes
+   only seed the route and nothing breaks). When no holding lane is on the
    route or a successor, that is a BREAK: the generated links take the vehicle elsewhere (a lane
    routed into a sliver or an exit, a missing link). Length counts as wrong from there until a
    holding lane is one the generated links can reach from the route (e.g. the sliver's end
@@ -391,6 +394,7 @@ class _Route:
     lanes: frozenset[int] = frozenset()
     on: bool = True
     counted: bool = True  # off the route: its break was counted (it is counted at the first evaluated sample)
+    started: bool = False  # an evaluated sample was met: before it the route is only seeded (rule 4)
 
 
 @dataclass
@@ -413,12 +417,16 @@ def _follow(piece: _Piece, route: _Route, codes: np.ndarray, evaluated: np.ndarr
     starts = np.flatnonzero(change)
     ends = np.append(starts[1:], len(rows))
     weight = samples["weight"][piece.first:piece.stop]
-    lanes, on, counted = route.lanes, route.on, route.counted
+    lanes, on, counted, started = route.lanes, route.on, route.counted, route.started
     for a, b in zip(starts, ends, strict=True):
         row = rows[a]
         w = float(weight[a:b].sum()) if ev[a] else 0.0
         held = frozenset(int(c) // 2 for c in row if c >= 0)
         full = frozenset(int(c) // 2 for c in row if c >= 0 and c % 2)
+        started = started or bool(ev[a])
+        if not started:
+            lanes, on, counted = held, True, True
+            continue
         if not held:
             tally.unheld += w
             lanes, on = frozenset(), True
@@ -449,7 +457,7 @@ def _follow(piece: _Piece, route: _Route, codes: np.ndarray, evaluated: np.ndarr
                 tally.breaks_at.append({"x": round(float(x), 2), "y": round(float(y), 2),
                                         "reference_road": ref_key[0], "reference_lane": ref_key[2]})
         tally.off_route += w
-    return _Route(lanes, on, counted)
+    return _Route(lanes, on, counted, started)
 
 
 def lane_graph_agreement(gen_map: Any, ref_map: Any, cfg: EvaluationConfig, driving: frozenset[str],
@@ -487,7 +495,8 @@ def lane_graph_agreement(gen_map: Any, ref_map: Any, cfg: EvaluationConfig, driv
             continue
         before = [final[n] for n in sorted(ref_graph.pred[p.node]) if n in final]
         on = any(r.on for r in before) or not before
-        start = _Route(frozenset().union(*(r.lanes for r in before)), on, on or any(r.counted for r in before))
+        start = _Route(frozenset().union(*(r.lanes for r in before)), on, on or any(r.counted for r in before),
+                       any(r.started for r in before))
         final[p.node] = _follow(p, start, codes, evaluated, samples, gen_graph, 2.0 * step, tally,
                                 ref_graph.keys[p.node])
         queue.extend(piece_of[n] for n in sorted(ref_graph.succ[p.node], reverse=True)
