@@ -570,6 +570,25 @@ def test_implied_edges_need_a_measured_dash_pattern_and_a_long_run() -> None:
     assert on_r.shape == (1, m) and np.allclose(t_r[0], -3.6), "right of the broken line when it is the rightmost"
 
 
+def test_implied_edges_vote_on_the_far_edge_over_the_whole_stretch() -> None:
+    """Along an exit the far edge line turns into the exit lane's broken line for a while (corridor 18:
+    the implied inner lane stopped at every exit, centre 1.28 m); the lane beyond the broken line
+    goes on. A far edge that is solid over less than half the stretch implies nothing."""
+    from lidar2xodr.unpainted_lanes import implied_edges
+
+    m = 200
+    t = np.array([np.full(m, 3.6), np.zeros(m), np.full(m, -3.4), np.full(m, -6.9)])
+    on = np.ones_like(t, dtype=bool)
+    on[3] = False
+    on[3, 80:120] = True  # an exit lane's broken line beyond the solid edge
+    broken, solid = np.array([True, False, False, True]), np.array([False, False, True, False])
+    on_l, t_l = implied_edges(on, t, broken, solid, 1.0, LCFG)
+    assert on_l.shape == (1, m) and on_l[0].all() and np.allclose(t_l[0], 7.2)
+    on[3, :150] = True
+    mostly_broken, _ = implied_edges(on, t, broken, solid, 1.0, LCFG)
+    assert mostly_broken.shape == (0, m)
+
+
 def test_unpainted_border_survives_lanes_json_and_is_written_without_a_mark(tmp_path: Path) -> None:
     from lidar2xodr.config import ExportConfig
     from lidar2xodr.export_opendrive import export_opendrive

@@ -40,12 +40,15 @@ def implied_edges(on: np.ndarray, t: np.ndarray, broken: np.ndarray, solid: np.n
                   cfg: LanesConfig) -> tuple[np.ndarray, np.ndarray]:
     """Outer borders of the lanes beyond broken outermost lines.
 
-    Only where the carriageway's outermost line on the other side is a solid edge line: the
-    carriageway is then known to lie on this side of that edge, so the lane beyond the broken
-    line is one of its own. Without a seen edge the broken line may be the centre line of a
-    two-way road (town roads with curbs and no edge paint), and the lane beyond it the opposite
-    direction's. Not where a lane beyond the line has just closed onto it or is about to open
-    from it (a taper's end: the lane is known not to be there).
+    Only where the carriageway's outermost line on the other side is a solid edge line over at
+    least half of the stretch where the broken line is outermost: the carriageway is then known to
+    lie on this side of that edge, so the lane beyond the broken line is one of its own. Without a
+    seen edge the broken line may be the centre line of a two-way road (town roads with curbs and
+    no edge paint), and the lane beyond it the opposite direction's. The vote is over the whole
+    stretch, not per station: along an exit or entry the far edge line is broken for a few hundred
+    metres, and the lane beyond the broken line does not stop there. Not where a lane beyond the
+    line has just closed onto it or is about to open from it (a taper's end: the lane is known not
+    to be there).
 
     on, t: (B, M) presence and lateral offset (left positive) of the kept lines at each station;
     broken: (B,) lines with a measured dash pattern; solid: (B,) solid lines. Returns (K, M)
@@ -70,17 +73,18 @@ def implied_edges(on: np.ndarray, t: np.ndarray, broken: np.ndarray, solid: np.n
             far_edge = np.argmax(np.where(on, -side * t, -np.inf), axis=0)
             edged = solid[far_edge]
             for b in np.flatnonzero(broken):
-                here = (outer == b) & on[b] & (count >= 2) & edged
-                width = side * (t_on[b] - t_on[inner, np.arange(m)])
-                lane_like = here & (width >= cfg.min_lane_width_m) & (width <= cfg.max_lane_width_m)
+                here = (outer == b) & on[b] & (count >= 2)
                 runs = [(s, e) for s, e in _runs(here)
-                        if e - s >= min_run and not _taper_beside(on, t, b, side, s, e, cfg.min_lane_width_m)]
-                if not runs or not lane_like.any():
-                    continue
-                w = float(np.median(width[lane_like]))
+                        if e - s >= min_run and 2 * np.count_nonzero(edged[s:e]) >= e - s
+                        and not _taper_beside(on, t, b, side, s, e, cfg.min_lane_width_m)]
                 keep = np.zeros(m, dtype=bool)
                 for s, e in runs:
                     keep[s:e] = True
+                width = side * (t_on[b] - t_on[inner, np.arange(m)])
+                lane_like = keep & (width >= cfg.min_lane_width_m) & (width <= cfg.max_lane_width_m)
+                if not lane_like.any():
+                    continue
+                w = float(np.median(width[lane_like]))
                 rows_on.append(keep)
                 rows_t.append(np.where(keep, t[b] + side * w, np.nan))
     if not rows_on:
