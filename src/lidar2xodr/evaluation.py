@@ -65,16 +65,18 @@ drive's GNSS bias, as the paper's drive-to-drive protocol compares drives of unb
 8. `lane_graph`: does the generated map ROUTE a vehicle along the reference's lanes? Each reference
    driving lane's centre line is followed through the reference's lane links (lane sections, road
    links, junction connections), sampled every `lane_graph_step_m` (0.5 m); at each sample the
-   generated driving lanes of the same travel direction whose lane polygon encloses it are found.
-   A sample agrees when one of them is the generated route's lane or a linked successor of it
-   (lane link, road link or junction connection in the GENERATED map) and it is at least
+   generated driving lanes of the same travel direction whose lane polygon encloses it are found. A
+   sample agrees when one of them is the generated route's lane or a linked successor of it (lane
+   link, road link or junction connection in the GENERATED map) and it is at least
    `lane_graph_min_width_m` (1.75 m) wide there, or narrower within `lane_graph_taper_m` (60 m) of
-   its lane's first or last end (a taper). A `break` is a place where the next sample's lane is
-   neither; the length from there on is wrong until a lane the generated links can reach holds the
-   reference lane again. Coverage enters as in rule 6: only reference samples inside the covered
-   stretch of their road and side count, and every one of them does, so uncovered or unheld length
-   inside it is wrong, never agreement. `agreement` = agreeing length / evaluated reference lane
-   length, `wrong_m` = the rest. Full rule: `lidar2xodr.lane_graph`.
+   its lane's first or last end (a taper). A reference lane that opens from zero width starts at its
+   first sample that wide (before it the holding lanes only seed the route). A `break` is a place
+   where the next sample's lane is neither; the length from there on is wrong until a lane the
+   generated links can reach holds the reference lane again. Coverage enters as in rule 6: only
+   reference samples inside the covered stretch of their road and side count, and every one of them
+   does, so uncovered or unheld length inside it is wrong, never agreement. `agreement` = agreeing
+   length / evaluated reference lane length, `wrong_m` = the rest. Full rule:
+   `lidar2xodr.lane_graph`.
 """
 
 from __future__ import annotations
