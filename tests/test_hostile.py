@@ -44,7 +44,12 @@ def snapshot(root: Path) -> dict[str, str]:
     snap = {}
     for p in sorted(root.rglob("*")):
         rel = p.relative_to(root).as_posix()
-        snap[rel] = "<dir>" if p.is_dir() else hashlib.sha256(p.read_bytes()).hexdigest()
+        if p.is_dir():
+            snap[rel] = "<dir>"
+        elif p.is_file():
+            snap[rel] = hashlib.sha256(p.read_bytes()).hexdigest()
+        else:  # a device or pipe (reading a pipe would block): its type
+            snap[rel] = f"<special {p.lstat().st_mode:o}>"
     return snap
 
 
@@ -687,3 +692,165 @@ def test_a_report_from_before_markers_is_updated_file_by_file(tmp_path: Path) ->
         (tmp / "index.html").write_text("new")
     assert (rep / "index.html").read_text() == "new" and (rep / "old_picture.png").read_bytes() == b"png"
     assert (rep / ".lidar2xodr-report").is_file()
+
+
+# --------------------------------------------------------------------------------------------
+# each item through commands and options that 6649d36 (the code the issue was filed on) already had,
+# so that these fail there on the behaviour itself, not on a new command (`config --show`) or helper
+
+
+@pytest.mark.parametrize("case", ["yaml_markup", "yaml_multiline", "negative_radius", "nan", "negative_workers"])
+def test_bad_config_given_to_compare_is_one_line(case: str, tmp_path: Path, assets: dict[str, Path]) -> None:
+    """Items 3, 9, 11: `[/data/run1]` in a YAML error crashed the printer; a tab gave a multi-line error;
+    `search_radius_m: -1`, `.nan` and `workers: -3` were accepted."""
+    text, field = BAD_CONFIGS[case]
+    cfg = tmp_path / "my config.yaml"
+    cfg.write_text(text)
+    line = hostile(["compare", assets["map"], assets["map"], "-c", cfg], tmp_path, names=cfg)
+    assert field in line
+
+
+def test_markup_in_a_config_path_and_its_error_is_printed_verbatim(tmp_path: Path, assets: dict[str, Path]) -> None:
+    """Item 3 through `compare -c`: the folder `[/data/run1]`, the file `run[left].yaml`, the YAML text `[time`."""
+    folder = tmp_path / "[/data/run1]"
+    folder.mkdir(parents=True)
+    cfg = folder / "run[left].yaml"
+    cfg.write_text("markings: [time\n")
+    line = hostile(["compare", assets["map"], assets["map"], "-c", cfg], tmp_path)
+    assert "[/data/run1]/run[left].yaml" in line and "[time" in line
+
+
+def _negative_width_map(path: Path, minor: int) -> Path:
+    """One straight 200 m road; lane -2 narrows by 0.05 m/m from s = 120 and is -0.5 m wide at its end."""
+    path.write_text(
+        f'<?xml version="1.0" encoding="UTF-8"?>\n<OpenDRIVE><header revMajor="1" revMinor="{minor}" name="t" '
+        'version="1" date="2024-01-01T00:00:00"/><road id="1" length="200.0" junction="-1" rule="RHT">'
+        '<planView><geometry s="0" x="0" y="0" hdg="0" length="200.0"><line/></geometry></planView>'
+        '<lanes><laneSection s="0"><center><lane id="0" type="none" level="false"/></center><right>'
+        '<lane id="-1" type="driving" level="false"><width sOffset="0" a="3.5" b="0" c="0" d="0"/></lane>'
+        '<lane id="-2" type="driving" level="false"><width sOffset="0" a="3.5" b="0" c="0" d="0"/>'
+        '<width sOffset="120" a="3.5" b="-0.05" c="0" d="0"/></lane></right></laneSection></lanes></road>'
+        "</OpenDRIVE>\n", encoding="utf-8")
+    return path
+
+
+@pytest.mark.parametrize("minor", [6, 8])
+def test_negative_lane_width_is_refused_by_simulate_and_an_error_of_check(minor: int, tmp_path: Path) -> None:
+    """Item 9: a map with a negative lane width passed `simulate` and `check` (1.6 and 1.8 headers)."""
+    from lidar2xodr.check import find_qc_venv
+    from lidar2xodr.errors import InputError
+
+    bad = _negative_width_map(tmp_path / "neg.xodr", minor)
+    line = hostile(["simulate", bad, tmp_path / "drive"], tmp_path, names=bad)
+    assert "road 1 lane -2" in line and "-0.500" in line
+    try:
+        find_qc_venv()
+    except InputError as exc:
+        pytest.skip(f"ASAM checker environment missing: {exc}")
+    verdict = tmp_path / "verdict.json"
+    res = runner.invoke(app, ["check", str(bad), "--json", str(verdict)])
+    assert res.exit_code == 1, res.output
+    result = json.loads(verdict.read_text())
+    assert result["ok"] is False and any("negative lane width" in r for r in result["reasons"]), result["reasons"]
+
+
+@pytest.mark.parametrize("case", ["bad objects.csv", "--keep-intermediate onto a file"])
+def test_a_failed_build_leaves_no_map(case: str, tmp_path: Path, assets: dict[str, Path]) -> None:
+    """Item 10 alone (no line counting): the build fails with exit 2 and no map.xodr appears."""
+    drive, out = tmp_path / "drive", tmp_path / "out"
+    shutil.copytree(assets["drive"], drive)
+    extra: list[str] = []
+    if case == "bad objects.csv":
+        (drive / "objects.csv").write_text("time,id,class,x\n0.0,1,car,[oops]\n")
+        extra = ["--scenario", str(out / "map.xosc")]
+    else:
+        (tmp_path / "keep").write_text("the user's")
+        extra = ["--keep-intermediate", str(tmp_path / "keep")]
+    res = runner.invoke(app, ["build", str(drive), "-o", str(out / "map.xodr"), *extra])
+    assert res.exit_code == 2, res.stdout + res.stderr
+    assert not (out / "map.xodr").exists() and not (out / "map.xosc").exists()
+    assert case == "bad objects.csv" or (tmp_path / "keep").read_text() == "the user's"
+
+
+def test_sigkill_of_the_build_during_extraction_takes_the_workers_along(tmp_path: Path,
+                                                                         assets: dict[str, Path]) -> None:
+    """Item 6: killing the main process (SIGKILL, no clean-up of ours runs) left the extraction's workers running."""
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("extraction:\n  workers: 2\n")
+    proc = subprocess.Popen([sys.executable, "-m", "lidar2xodr.cli", "build", str(assets["drive"]), "-o",
+                             str(tmp_path / "out" / "map.xodr"), "-c", str(cfg)], env=_env(),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        if not _wait(lambda: len(_descendants(proc.pid)) >= 2, 60):
+            pytest.fail("the build never started its workers")
+        workers = _descendants(proc.pid)
+        proc.kill()
+        proc.wait(timeout=10)
+        assert _wait(lambda: not any(_alive(k) for k in workers), 10), "a worker outlived the killed build"
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+
+
+def test_a_sigkilled_builds_leftovers_are_cleaned_by_the_next_run(tmp_path: Path, assets: dict[str, Path]) -> None:
+    """Item 6 without our temp-name format: whatever a build killed during the map check leaves beside the
+    map and in the temporary folder (its own TMPDIR here) is gone after the next run that writes there."""
+    tmp, out = tmp_path / "tmp", tmp_path / "out"
+    tmp.mkdir()
+    out.mkdir()
+    (out / "map.xodr").write_text("the map of an earlier build")
+    env = {**_env(), "TMPDIR": str(tmp)}
+    proc = subprocess.Popen([sys.executable, "-m", "lidar2xodr.cli", "build", str(assets["drive"]), "-o",
+                             str(out / "map.xodr")], env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        if not _wait(lambda: any("qc" in Path(f"/proc/{k}/cmdline").read_text(errors="ignore")
+                                 for k in _descendants(proc.pid) if Path(f"/proc/{k}/cmdline").exists()), 60):
+            pytest.fail("the build never started its checker")
+        proc.kill()
+        proc.wait(timeout=10)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert (out / "map.xodr").read_text() == "the map of an earlier build"
+    left = [p for p in [*out.iterdir(), *tmp.iterdir()] if p != out / "map.xodr"]
+    assert left, "the killed build left nothing (was the checker running?)"
+    rerun = subprocess.run([sys.executable, "-m", "lidar2xodr.cli", "compare", str(assets["map"]), str(assets["map"]),
+                            "--json", str(out / "m.json")], env=env, capture_output=True, text=True, timeout=120)
+    assert rerun.returncode == 0, rerun.stderr
+    assert sorted(p.name for p in out.iterdir()) == ["m.json", "map.xodr"]
+    assert not any(p.exists() for p in left), left
+
+
+@pytest.mark.parametrize("where", ["procfs", "read-only"])
+def test_build_onto_procfs_or_a_read_only_folder_is_exit_2(where: str, tmp_path: Path,
+                                                          assets: dict[str, Path]) -> None:
+    """Item 8 through `build` (its temporary folder beside the map was an internal error, exit 3)."""
+    if where == "procfs":
+        target = Path("/proc/m.xodr")
+        hostile(["build", assets["drive"], "-o", target], tmp_path, names=target)
+        return
+    with tmpfs(tmp_path / "ro", "ro,size=64k") as ro:
+        target = ro / "m.xodr"
+        line = hostile(["build", assets["drive"], "-o", target], tmp_path, names=target)
+        assert "read-only" in line
+
+
+@pytest.mark.parametrize("kind", ["device", "pipe"])
+def test_an_output_onto_a_device_or_pipe_is_refused_and_left_as_it_is(kind: str, tmp_path: Path,
+                                                                      assets: dict[str, Path]) -> None:
+    """`--json /dev/null` as root replaced the null device with a regular file (the rename of an atomic
+    write); a device, pipe or socket as an output file is exit 2 and stays what it was."""
+    import stat
+
+    target = tmp_path / f"out-{kind}"
+    if kind == "pipe":
+        os.mkfifo(target)
+    else:
+        try:
+            os.mknod(target, 0o666 | stat.S_IFCHR, os.makedev(1, 3))  # a second /dev/null
+        except PermissionError:
+            pytest.skip("making a device node needs root")
+    hostile(["compare", assets["map"], assets["map"], "--json", target], tmp_path, names=target)
+    mode = target.lstat().st_mode
+    assert stat.S_ISFIFO(mode) if kind == "pipe" else stat.S_ISCHR(mode)

@@ -103,6 +103,8 @@ def check_output_file(target: str | Path) -> Path:
     target = Path(target)
     if target.is_dir():
         raise OutputError(target, "is a folder, not a file: give the file name to write")
+    if target.exists() and not target.is_file():  # the rename would replace a device (/dev/null), pipe or socket
+        raise OutputError(target, "is a device, pipe or socket, not a file: give the file name to write")
     if target.parent.exists() and not target.parent.is_dir():
         raise OutputError(target, f"{target.parent} is a file, not a folder")
     return target
