@@ -515,10 +515,6 @@ def test_aimotive_corrupt_frame_is_skipped_and_counted(aimotive_with_corrupt_mid
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="the lanes stage finds no two lines a lane apart when frame 66, 67 or 68 "
-                   "of the 50 is missing (even deleted outright): the reader skips and counts it, the road is lost "
-                   "after extraction (lanes.py's first-axis choice; the odometry branch's road-axis rule, 8393a09, "
-                   "makes it pass and was reverted for a highway_merge regression)")
 def test_aimotive_sample_with_a_corrupt_middle_frame_still_builds(aimotive_with_corrupt_middle_frame,
                                                                   tmp_path: Path) -> None:
     drive, bad, n = aimotive_with_corrupt_middle_frame

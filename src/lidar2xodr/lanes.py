@@ -608,7 +608,11 @@ def _line_frame(pieces: list[Candidate], cfg: LanesConfig) -> Frame | None:
     line spans the road (90 % of the first frame's length) and `_LINE_FRAME_GAIN` times as much marking
     length runs along it (`_parallel_length`; measured: aiMotive 1.26 and 1.86 with two extractions,
     the first frame working in the first case only; simple_highway 1.01, where the line axis, an edge's
-    raw cluster centres, made the map worse: boundaries 0.047 -> 0.264 m).
+    raw cluster centres, made the map worse: boundaries 0.047 -> 0.264 m). Otherwise it is the second
+    axis tried, where the first frame finds no stretch with two lines a lane apart (the aiMotive
+    sample with one middle frame unreadable: the first frame's middles bend by 1.5 m, the dashes of
+    the broken line no longer join, and the build ended in exit 2); a drive that builds on the first
+    frame is not changed by it.
     """
     best, length = None, 0.0
     for c in pieces:
@@ -1492,9 +1496,30 @@ def build_lane_model(
     superline = global_lookup(len(pieces), lookups, w_lane, cfg)
     frame = _first_frame(segs, lookups, cfg)
     along_line = _line_frame(pieces, cfg)
-    if (along_line is not None and along_line.length >= 0.9 * frame.length
-            and _parallel_length(along_line, segs, cfg) > _LINE_FRAME_GAIN * _parallel_length(frame, segs, cfg)):
-        frame = along_line
+    frames = [frame]
+    if along_line is not None:
+        if (along_line.length >= 0.9 * frame.length
+                and _parallel_length(along_line, segs, cfg) > _LINE_FRAME_GAIN * _parallel_length(frame, segs, cfg)):
+            frames.insert(0, along_line)
+        else:
+            frames.append(along_line)
+    for attempt, frame in enumerate(frames):
+        try:
+            return _build_on_frame(cloud, candidates, cfg, where, xyz, pieces, owner, superline, frame, step, w_lane)
+        except _NoRoad:
+            if attempt == len(frames) - 1:
+                raise _NoRoad from None
+    raise AssertionError("unreachable")
+
+
+class _NoRoad(Exception):
+    """No station of a frame has two kept lines: the road axis may be poor (`build_lane_model` tries the next)."""
+
+
+def _build_on_frame(cloud: MarkingCloud, candidates: list[Candidate], cfg: LanesConfig, where: str, xyz: np.ndarray,
+                    pieces: list[Candidate], owner: np.ndarray, superline: np.ndarray, frame: Frame, step: float,
+                    w_lane: float) -> LaneModel:
+    """`build_lane_model` along one road axis; `_NoRoad` when no stretch has two lines a lane apart on it."""
     warnings: list[str] = []
     label = _label_by_candidates(xyz[:, :2], pieces, superline, cfg)
     n_sl = int(superline.max()) + 1
@@ -1535,7 +1560,7 @@ def build_lane_model(
             structure = _Structure(np.zeros(fit.t.shape, dtype=bool), np.full(fit.t.shape, np.nan))
             structure.on[active], structure.t[active] = sub.on, sub.t
             if not np.any(structure.on.sum(axis=0) >= 2):
-                raise InputError(where, "no stretch of road has two marking lines a lane apart")
+                raise _NoRoad
             tapers, taper_notes = _taper_lanes(_Points(k_pt, t_pt, s_pt, inside, use, xyz[:, 2]), structure,
                                                -travel, step, cfg)
             found = np.zeros(len(label), dtype=bool)
