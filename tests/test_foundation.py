@@ -160,6 +160,28 @@ def test_staged_outputs_are_all_or_nothing(tmp_path: Path) -> None:
     assert sorted(p.name for p in tmp_path.iterdir()) == ["map.xodr", "report"]
 
 
+def test_an_output_that_is_a_link_is_written_where_it_points(tmp_path: Path) -> None:
+    """`-o latest.xodr`, a link to the day's map: the map is replaced and the link stays a link (the
+    atomic rename used to put a file in place of the link and leave the linked map stale); a staged
+    output is found by either name."""
+    maps = tmp_path / "maps"
+    maps.mkdir()
+    (maps / "today.xodr").write_text("old")
+    link = tmp_path / "latest.xodr"
+    link.symlink_to(maps / "today.xodr")
+    with staged_outputs():
+        with atomic_path(link) as tmp:
+            tmp.write_text("new")
+        assert staged(link).read_text() == "new" and staged(maps / "today.xodr").read_text() == "new"
+    assert link.is_symlink() and (maps / "today.xodr").read_text() == "new"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["latest.xodr", "maps"]
+    dangling = tmp_path / "next.xodr"
+    dangling.symlink_to(maps / "tomorrow.xodr")
+    with atomic_path(dangling) as tmp:
+        tmp.write_text("first")
+    assert dangling.is_symlink() and (maps / "tomorrow.xodr").read_text() == "first"
+
+
 def test_atomic_dir_replaces_only_its_own_files(tmp_path: Path) -> None:
     rep = tmp_path / "report"
     with atomic_dir(rep) as tmp:

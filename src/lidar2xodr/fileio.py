@@ -98,9 +98,18 @@ def os_problem(exc: OSError) -> str:
     return exc.strerror or str(exc)
 
 
+def _followed(target: Path) -> Path:
+    """The file a symbolic link names (followed to the end; it may not exist yet), else `target`."""
+    return Path(os.path.realpath(target)) if target.is_symlink() else target
+
+
 def check_output_file(target: str | Path) -> Path:
-    """Refuse an output file path that is a folder; return it as a Path."""
-    target = Path(target)
+    """Refuse an output file path that is a folder; return it as a Path.
+
+    An output that is a symbolic link is written where the link points, and the link stays (a
+    `latest.xodr` link to the day's map gets the new map; replacing the link itself with a file
+    would leave the linked map stale)."""
+    target = _followed(Path(target))
     if target.is_dir():
         raise OutputError(target, "is a folder, not a file: give the file name to write")
     if target.exists() and not target.is_file():  # the rename would replace a device (/dev/null), pipe or socket
@@ -225,7 +234,7 @@ def staged_outputs() -> Iterator[None]:
 
 def staged(target: str | Path) -> Path:
     """The path where `target`'s content is now: its temporary copy while staged, else `target` itself."""
-    target = Path(target)
+    target = _followed(Path(target))
     staged_set = _CURRENT.get()
     if staged_set is not None:
         for tmp, dest, _ in reversed(staged_set.moves):
