@@ -604,3 +604,24 @@ def test_unpainted_border_survives_lanes_json_and_is_written_without_a_mark(tmp_
     lanes = ET.parse(tmp_path / "map.xodr").getroot().find("road/lanes/laneSection")
     marks = {int(lane.get("id")): lane.find("roadMark").get("type") for lane in lanes.iter("lane")}
     assert marks[0] == "none" and marks[-1] == "broken" and marks[-3] == "solid"
+
+
+def test_a_road_found_on_no_axis_is_one_input_error_after_both_are_tried(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Where the first axis finds no stretch with two lines a lane apart, the longest line's axis is
+    tried; where neither does, the error names the marking cloud (not an internal exception)."""
+    import lidar2xodr.lanes as lanes_mod
+
+    road = make_road([straight(300.0)], gnss_noise=0.05, seed=5)
+    tried: list[int] = []
+    real = lanes_mod._lane_structure
+
+    def nothing_kept(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202 - the stage's own signature
+        out = real(*args, **kwargs)
+        tried.append(id(args))
+        out.on[:] = False
+        return out
+
+    monkeypatch.setattr(lanes_mod, "_lane_structure", nothing_kept)
+    with pytest.raises(InputError, match="no stretch of road has two marking lines a lane apart"):
+        _build(road)
+    assert len(tried) == 2, "both road axes were tried"

@@ -1508,7 +1508,7 @@ def build_lane_model(
             return _build_on_frame(cloud, candidates, cfg, where, xyz, pieces, owner, superline, frame, step, w_lane)
         except _NoRoad:
             if attempt == len(frames) - 1:
-                raise _NoRoad from None
+                raise InputError(where, "no stretch of road has two marking lines a lane apart") from None
     raise AssertionError("unreachable")
 
 
