@@ -894,7 +894,8 @@ def _follow_tapers(
                 for start, edge, inward in ((s, s, 1), (e - 1, e, -1)):
                     if (inward == 1 and edge == 0) or (inward == -1 and edge == m):
                         continue
-                    if not _extend(t, on, b, start, inward, probe, reach, w_lane):
+                    if not _extend(t, on, b, start, inward, probe, reach, w_lane) \
+                            and not _open_beside_edge(t, on, b, start, inward, reach, cfg.min_lane_width_m):
                         end = road[0] if inward == 1 else road[-1]
                         if abs(start - end) <= reach:
                             _hold_to(t, on, b, start, end, seen if solid is not None and solid[b] else None)
@@ -936,6 +937,54 @@ def _hold_to(
     span = span[on[nb, span] & ~on[b, span]]
     t[b, span] = t[nb, span] + offset
     on[b, span] = True
+
+
+def _open_beside_edge(t: np.ndarray, on: np.ndarray, b: int, start: int, inward: int, reach: int,
+                      min_width: float) -> bool:
+    """Carry line b back (forward) at its offset to its inner neighbour p while the lane beyond it opens
+    (closes) along the carriageway's edge e.
+
+    An entry or exit lane whose line is painted only where the lane has its full width: the line
+    starts with a whole lane between it and the edge, and before its start the edge comes in towards
+    p until the edge is one lane (b's) from p. The edge's course, not b's paint, shows the taper, so
+    `_extend` (which measures the taper along b) does not see it. Only when e is the outermost line,
+    the lane beyond b is at least `min_width` wide where b starts, and the edge's spacing to p shrinks
+    without a jump to b's spacing within `reach` stations (the taper's far end, where b meets e)."""
+    rows = [j for j in range(len(t)) if j != b and on[j, start]]
+    tb = t[b, start]
+    for d in (1.0, -1.0):
+        beyond = [j for j in rows if d * (t[j, start] - tb) > 0]
+        inner = [j for j in rows if d * (t[j, start] - tb) < 0]
+        if len(beyond) != 1 or not inner:
+            continue
+        e = beyond[0]
+        p = min(inner, key=lambda j: abs(t[j, start] - tb))
+        g_in, g_out = d * (tb - t[p, start]), d * (t[e, start] - tb)
+        if g_out < min_width:
+            continue
+        walked: list[int] = []
+        previous = g_out
+        closed = False
+        for i in range(1, reach + 1):
+            k = start - inward * i
+            if not 0 <= k < t.shape[1] or on[b, k] or not (on[e, k] and on[p, k]):
+                break
+            width = d * (t[e, k] - t[p, k]) - g_in
+            if width > previous + 0.1 or (i == 1 and abs(width - g_out) > 0.5):
+                break
+            walked.append(k)
+            if width <= 0.05:
+                closed = True
+                break
+            previous = min(previous, width)
+        if not closed:
+            continue
+        for k in walked[:-1]:
+            t[b, k] = t[p, k] + d * g_in
+        t[b, walked[-1]] = t[e, walked[-1]]
+        on[b, walked] = True
+        return True
+    return False
 
 
 def _extend(
@@ -1262,12 +1311,18 @@ def _type_tapers(model: LaneModel, tapers: list[_Taper], new_id: np.ndarray, tra
         )
 
 
+def _lane_between(ids: list[int], a: int, b: int) -> bool:
+    """Whether boundaries a and b are neighbours in a section's ordered boundary ids (a lane between them)."""
+    return a in ids and b in ids and abs(ids.index(a) - ids.index(b)) == 1
+
+
 def _type_by_width(model: LaneModel, travel: int, cfg: LanesConfig) -> None:
     """An outermost lane that opens from zero width where its section begins and is still at full
-    width where it ends, its outer line going on no further, is an exit lane (an entry lane
-    mirrored): its measured taper is its narrow end, and it leaves the road at its wide end (a
-    ramp's lane) rather than closing. Typed like `_type_tapers`' lanes, so it keeps its width
-    there instead of a taper being invented. A lane still widening at its end by
+    width where it ends, the lane going on no further (neither of the sections beside holds a lane
+    between its two lines: its outer line ends, or its inner line began at the taper's narrow end),
+    is an exit lane (an entry lane mirrored): its measured taper is its narrow end, and it leaves
+    the road at its wide end (a ramp's lane) rather than closing. Typed like `_type_tapers`' lanes,
+    so it keeps its width there instead of a taper being invented. A lane still widening at its end by
     `branch_widening_m` is left to the junction builder (branches.find_events)."""
     by_id = {b.id: b for b in model.boundaries}
     secs = model.sections
@@ -1279,7 +1334,7 @@ def _type_by_width(model: LaneModel, travel: int, cfg: LanesConfig) -> None:
         ks = np.flatnonzero((model.s >= sec.s_start - 1e-9) & (model.s <= sec.s_end + 1e-9))
         if len(ks) < 10:
             continue
-        for lane, outer in ((0, ids[0]), (n - 1, ids[-1])):
+        for lane in (0, n - 1):
             if lane == 0 and sec.divider_id is not None:
                 continue
             if sec.lane_types is not None and sec.lane_types[lane] != "driving":
@@ -1291,8 +1346,9 @@ def _type_by_width(model: LaneModel, travel: int, cfg: LanesConfig) -> None:
             med = float(np.median(w))
             if med < cfg.min_lane_width_m:
                 continue
-            new_before = j == 0 or outer not in secs[j - 1].boundary_ids
-            gone_after = j == len(secs) - 1 or outer not in secs[j + 1].boundary_ids
+            pair = (ids[lane], ids[lane + 1])
+            new_before = j == 0 or not _lane_between(secs[j - 1].boundary_ids, *pair)
+            gone_after = j == len(secs) - 1 or not _lane_between(secs[j + 1].boundary_ids, *pair)
             head, tail = float(np.mean(w[:3])), float(np.mean(w[-3:]))
             opens = new_before and head < 0.5 * med and tail >= 0.8 * med
             closes = gone_after and tail < 0.5 * med and head >= 0.8 * med
