@@ -7,7 +7,7 @@ import numpy as np
 
 from lidar2xodr.config import LanesConfig
 from lidar2xodr.data import Boundary, LaneModel, LaneSection
-from lidar2xodr.lanes import _bridge_gaps, _fork_curves, _type_by_width
+from lidar2xodr.lanes import _bridge_gaps, _fork_curves, _open_beside_edge, _type_by_width
 
 M = 300
 
@@ -79,3 +79,42 @@ def test_a_full_lane_or_one_that_closes_again_is_left_alone() -> None:
     widening = _model(np.clip((s - 100) / 60.0, 0.0, 1.0) * 3.5 + np.clip((s - 180) / 10.0, 0.0, 2.0))
     _type_by_width(widening, 1, LanesConfig())
     assert widening.sections[1].lane_types is None, "still widening at its end: a diverge"
+
+
+def test_a_lane_whose_inner_line_begins_at_its_taper_and_leaves_at_full_width_is_an_exit_lane() -> None:
+    """corridor 13: the edge (id 2) goes on and moves out with the exit lane; the lane's inner line (id 3)
+    begins at the taper's narrow end. Neither section beside holds a lane between 3 and 2."""
+    s = np.arange(M, dtype=float)
+    widths = np.clip((s - 100) / 60.0, 0.0, 1.0) * 3.5
+    b = [Boundary(0, np.full(M, 3.5), "solid"), Boundary(1, np.zeros(M), "broken"),
+         Boundary(2, np.where((s >= 100) & (s < 200), -3.5 - widths, -3.5), "solid"),
+         Boundary(3, np.where((s >= 100) & (s < 200), -3.5, np.nan), "broken")]
+    secs = [LaneSection(0.0, 100.0, [0, 1, 2]), LaneSection(100.0, 200.0, [0, 1, 3, 2]),
+            LaneSection(200.0, 299.0, [0, 1, 2])]
+    model = LaneModel(s=s, reference=np.column_stack([s, np.zeros(M), np.zeros(M)]), boundaries=b, sections=secs)
+    _type_by_width(model, 1, LanesConfig())
+    assert model.sections[1].lane_types == ["driving", "driving", "exit"]
+
+
+def _edge_taper(jump: float = 0.0, left_edge: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Line 0 at 0 (inner), edge 1 at -3.5 moving out to -7 over stations 100-160, line 2 painted at
+    -3.5 from station 160 (the exit lane's line, painted where the lane is full), the left edge at 3.5."""
+    k = np.arange(M, dtype=float)
+    edge = -3.5 - np.clip((k - 100) / 60.0, 0.0, 1.0) * 3.5
+    edge[150:160] -= jump
+    t = np.vstack([np.zeros(M), edge, np.where(k >= 160, -3.5, np.nan)] + ([np.full(M, 3.5)] if left_edge else []))
+    return t, np.isfinite(t)
+
+
+def test_a_line_painted_only_at_full_width_is_carried_back_to_where_the_edge_meets_it() -> None:
+    t, on = _edge_taper()
+    assert _open_beside_edge(t, on, 2, 160, 1, 120, 2.5)
+    assert on[2, 101:160].all() and np.allclose(t[2, 101:160], -3.5), "at its offset to the inner line"
+    assert not on[2, :100].any(), "no further than where the edge meets it"
+    jumped, jumped_on = _edge_taper(jump=1.0)
+    assert not _open_beside_edge(jumped, jumped_on, 2, 160, 1, 120, 2.5), "an edge that jumps is no taper"
+    t, on = _edge_taper()
+    assert not _open_beside_edge(t, on, 2, 160, 1, 30, 2.5), "no taper end within reach"
+    assert not on[2, :160].any()
+    alone, alone_on = _edge_taper(left_edge=False)
+    assert not _open_beside_edge(alone, alone_on, 2, 160, 1, 120, 2.5), "either neighbour may have moved"

@@ -949,9 +949,12 @@ def _open_beside_edge(t: np.ndarray, on: np.ndarray, b: int, start: int, inward:
     p until the edge is one lane (b's) from p. The edge's course, not b's paint, shows the taper, so
     `_extend` (which measures the taper along b) does not see it. Only when e is the outermost line,
     the lane beyond b is at least `min_width` wide where b starts, and the edge's spacing to p shrinks
-    without a jump to b's spacing within `reach` stations (the taper's far end, where b meets e)."""
+    without a jump to b's spacing within `reach` stations (the taper's far end, where b meets e); and
+    only when this holds on one side of b (with b's two neighbours the only lines, either could be
+    the edge that moved: nothing is carried)."""
     rows = [j for j in range(len(t)) if j != b and on[j, start]]
     tb = t[b, start]
+    found: list[tuple[int, int, float, float, list[int]]] = []
     for d in (1.0, -1.0):
         beyond = [j for j in rows if d * (t[j, start] - tb) > 0]
         inner = [j for j in rows if d * (t[j, start] - tb) < 0]
@@ -977,14 +980,16 @@ def _open_beside_edge(t: np.ndarray, on: np.ndarray, b: int, start: int, inward:
                 closed = True
                 break
             previous = min(previous, width)
-        if not closed:
-            continue
-        for k in walked[:-1]:
-            t[b, k] = t[p, k] + d * g_in
-        t[b, walked[-1]] = t[e, walked[-1]]
-        on[b, walked] = True
-        return True
-    return False
+        if closed:
+            found.append((e, p, d, g_in, walked))
+    if len(found) != 1:
+        return False
+    e, p, d, g_in, walked = found[0]
+    for k in walked[:-1]:
+        t[b, k] = t[p, k] + d * g_in
+    t[b, walked[-1]] = t[e, walked[-1]]
+    on[b, walked] = True
+    return True
 
 
 def _extend(
