@@ -118,3 +118,8 @@ def test_a_line_painted_only_at_full_width_is_carried_back_to_where_the_edge_mee
     assert not on[2, :160].any()
     alone, alone_on = _edge_taper(left_edge=False)
     assert not _open_beside_edge(alone, alone_on, 2, 160, 1, 120, 2.5), "either neighbour may have moved"
+    moving_inner, moving_on = _edge_taper()
+    k = np.arange(M, dtype=float)
+    moving_inner[0] = -3.5 + np.clip((k - 100) / 60.0, 0.0, 1.0) * 3.5  # a 2+1 road's centre line moving across
+    moving_inner[1] = -7.0  # the edge stays
+    assert not _open_beside_edge(moving_inner, moving_on, 2, 160, 1, 120, 2.5), "the edge stayed: nothing opened"

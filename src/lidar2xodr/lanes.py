@@ -949,9 +949,10 @@ def _open_beside_edge(t: np.ndarray, on: np.ndarray, b: int, start: int, inward:
     p until the edge is one lane (b's) from p. The edge's course, not b's paint, shows the taper, so
     `_extend` (which measures the taper along b) does not see it. Only when e is the outermost line,
     the lane beyond b is at least `min_width` wide where b starts, and the edge's spacing to p shrinks
-    without a jump to b's spacing within `reach` stations (the taper's far end, where b meets e); and
-    only when this holds on one side of b (with b's two neighbours the only lines, either could be
-    the edge that moved: nothing is carried)."""
+    without a jump to b's spacing within `reach` stations (the taper's far end, where b meets e),
+    while p keeps its spacing to every other line seen there (it is e that moves, not p: on a 2+1
+    road the centre line moves across while the edges stay, and a new lane line beside the edge is
+    not carried along the centre line); and only when this holds on one side of b."""
     rows = [j for j in range(len(t)) if j != b and on[j, start]]
     tb = t[b, start]
     found: list[tuple[int, int, float, float, list[int]]] = []
@@ -980,7 +981,11 @@ def _open_beside_edge(t: np.ndarray, on: np.ndarray, b: int, start: int, inward:
                 closed = True
                 break
             previous = min(previous, width)
-        if closed:
+        if not closed:
+            continue
+        others = [q for q in rows if q not in (e, p) and on[q, walked].all()]
+        moved = [float(np.max(np.abs((t[p, walked] - t[q, walked]) - (t[p, start] - t[q, start])))) for q in others]
+        if others and max(moved) < 0.2 * g_out:
             found.append((e, p, d, g_in, walked))
     if len(found) != 1:
         return False
