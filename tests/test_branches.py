@@ -56,6 +56,33 @@ def test_a_diverging_lane_is_an_event_at_its_gore_and_a_steady_road_is_none() ->
     assert 145 <= ev.k <= 160  # where the width was last normal (3.5 + 0.3 m)
 
 
+def test_a_lane_still_widening_where_the_drive_ends_is_no_diverge() -> None:
+    """The drive ends inside the widening (no section after it): the lane was not seen to leave."""
+    road = _road(widen_from=150.0)
+    end = road.sections[0].s_end
+    road.sections = [LaneSection(0.0, end, [0, 1, 2])]
+    road.s, road.reference = road.s[: int(end) + 1], road.reference[: int(end) + 1]
+    for b in road.boundaries:
+        b.t = b.t[: int(end) + 1]
+    assert find_events(road, Config().lanes) == []
+
+
+def test_an_entry_lane_appearing_at_full_width_beside_a_new_outer_line_is_a_merge() -> None:
+    """An on-ramp's lane joins at the gore at full width and then tapers out as an acceleration lane:
+    typed entry by the lanes stage, and still the merge the junction builder models."""
+    s = np.arange(0.0, 301.0, 1.0)
+    ramp_lane = np.where(s < 250, 3.5, np.maximum(3.5 - 0.07 * (s - 250), 0.0))
+    bounds = [Boundary(0, np.full_like(s, 3.5)), Boundary(1, np.zeros_like(s), "broken"),
+              Boundary(2, np.full_like(s, -3.5), "broken"),
+              Boundary(3, np.where(s >= 100, -3.5 - ramp_lane, np.nan))]
+    sections = [LaneSection(0.0, 100.0, [0, 1, 2]), LaneSection(100.0, 300.0, [0, 1, 2, 3], lane_types=None)]
+    road = LaneModel(s=s, reference=np.stack([s, 0 * s, 0 * s], axis=1), boundaries=bounds, sections=sections)
+    untyped = find_events(road, Config().lanes)
+    road.sections[1].lane_types = ["driving", "driving", "entry"]
+    typed = find_events(road, Config().lanes)
+    assert [(e.kind, e.lane) for e in typed] == [("merge", 2)] == [(e.kind, e.lane) for e in untyped]
+
+
 def test_slice_and_flip_keep_the_geometry() -> None:
     road = _road()
     part = slice_model(road, 100, 200, drop={2})

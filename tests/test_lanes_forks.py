@@ -82,15 +82,16 @@ def test_a_full_lane_or_one_that_closes_again_is_left_alone() -> None:
 
 
 def test_a_lane_whose_inner_line_begins_at_its_taper_and_leaves_at_full_width_is_an_exit_lane() -> None:
-    """corridor 13: the edge (id 2) goes on and moves out with the exit lane; the lane's inner line (id 3)
-    begins at the taper's narrow end. Neither section beside holds a lane between 3 and 2."""
+    """corridor 13: the edge (id 2) moves out with the exit lane and leaves with it; the lane's inner line
+    (id 3) begins at the taper's narrow end and goes on as the edge. The previous section holds no lane
+    between 3 and 2, and the outer line 2 ends with the section."""
     s = np.arange(M, dtype=float)
     widths = np.clip((s - 100) / 60.0, 0.0, 1.0) * 3.5
     b = [Boundary(0, np.full(M, 3.5), "solid"), Boundary(1, np.zeros(M), "broken"),
-         Boundary(2, np.where((s >= 100) & (s < 200), -3.5 - widths, -3.5), "solid"),
-         Boundary(3, np.where((s >= 100) & (s < 200), -3.5, np.nan), "broken")]
+         Boundary(2, np.where(s < 100, -3.5, np.where(s < 200, -3.5 - widths, np.nan)), "solid"),
+         Boundary(3, np.where(s >= 100, -3.5, np.nan), "broken")]
     secs = [LaneSection(0.0, 100.0, [0, 1, 2]), LaneSection(100.0, 200.0, [0, 1, 3, 2]),
-            LaneSection(200.0, 299.0, [0, 1, 2])]
+            LaneSection(200.0, 299.0, [0, 1, 3])]
     model = LaneModel(s=s, reference=np.column_stack([s, np.zeros(M), np.zeros(M)]), boundaries=b, sections=secs)
     _type_by_width(model, 1, LanesConfig())
     assert model.sections[1].lane_types == ["driving", "driving", "exit"]

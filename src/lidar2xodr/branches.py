@@ -13,7 +13,13 @@ Rules (parameters in `LanesConfig`):
   whose width at the section's end (diverge) or start (merge) exceeds its median width by
   `branch_widening_m`, or (merge) a new outermost lane at a section start that starts at 70 % of its
   width or more, not at the start of the drive (an added lane grows from zero: the lanes stage
-  follows its taper). The junction station is where the lane's width was last normal (median +
+  follows its taper). A diverge is not sought in the drive's last section, as a merge is not in its
+  first: a lane still widening where the drive ends has not been seen to leave (roadgen corridor 14
+  ended 50 m into an exit lane's taper, and that lane became a one-lane junction road while the
+  through lane closed). An entry or exit lane (typed by the lanes stage) is no event, except an
+  entry lane that appears at full width beside the road with a new outer line: an on-ramp's lane
+  joining at the gore, which then runs on as the acceleration lane and tapers out. The junction
+  station is where the lane's width was last normal (median +
   0.3 m): the gore nose, where the two lines begin to separate.
 - Roads: the measured road before the junction (A) and after it (B: the same reference line, so B
   continues A exactly, without the lane that leaves or joins) plus the branch (C). C is built by the
@@ -89,8 +95,7 @@ def find_events(model: LaneModel, cfg: LanesConfig) -> list[Event]:
         if len(ks) < 6:
             continue
         for lane, side in _outer_lanes(sec):
-            if sec.lane_types is not None and sec.lane_types[lane] in TAPER_LANE_TYPES:
-                continue
+            tapered = sec.lane_types is not None and sec.lane_types[lane] in TAPER_LANE_TYPES
             w = _lane_width(model, sec, lane, ks)
             ok = np.isfinite(w)
             normal = w[ok & (w <= cfg.max_lane_width_m)]
@@ -100,7 +105,12 @@ def find_events(model: LaneModel, cfg: LanesConfig) -> list[Event]:
             outer = sec.boundary_ids[lane + 1] if side == "right" else sec.boundary_ids[lane]
             goes_on = j + 1 < n_sec and outer in model.sections[j + 1].boundary_ids
             came = j > 0 and outer in model.sections[j - 1].boundary_ids
-            if not goes_on and np.nanmax(w[-3:]) > med + cfg.branch_widening_m:
+            if tapered:
+                if (not came and j > 0 and float(np.nanmedian(w[:3])) >= _NEW_LANE_SHARE * med
+                        and _is_new(model, j, lane)):
+                    events.append(Event("merge", int(ks[0]), j, lane, side))
+                continue
+            if not goes_on and j + 1 < n_sec and np.nanmax(w[-3:]) > med + cfg.branch_widening_m:
                 i = len(w) - 1
                 while i > 0 and not (w[i] <= med + _NORMAL_MARGIN_M):
                     i -= 1

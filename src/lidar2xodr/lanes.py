@@ -883,6 +883,7 @@ def _follow_tapers(
     on = on.copy()
     b_n, m = t.shape
     reach = int(round(cfg.max_taper_length_m / step))
+    min_run = max(int(round(cfg.min_section_length_m / step)), 1)
     probe = max(int(round(40.0 / step)), 2)
     road = np.flatnonzero(on.sum(axis=0) >= 2)
     if len(road) == 0:
@@ -895,7 +896,8 @@ def _follow_tapers(
                     if (inward == 1 and edge == 0) or (inward == -1 and edge == m):
                         continue
                     if not _extend(t, on, b, start, inward, probe, reach, w_lane) \
-                            and not _open_beside_edge(t, on, b, start, inward, reach, cfg.min_lane_width_m):
+                            and not (e - s >= min_run
+                                     and _open_beside_edge(t, on, b, start, inward, reach, cfg.min_lane_width_m)):
                         end = road[0] if inward == 1 else road[-1]
                         if abs(start - end) <= reach:
                             _hold_to(t, on, b, start, end, seen if solid is not None and solid[b] else None)
@@ -942,7 +944,8 @@ def _hold_to(
 def _open_beside_edge(t: np.ndarray, on: np.ndarray, b: int, start: int, inward: int, reach: int,
                       min_width: float) -> bool:
     """Carry line b back (forward) at its offset to its inner neighbour p while the lane beyond it opens
-    (closes) along the carriageway's edge e.
+    (closes) along the carriageway's edge e (`_follow_tapers` asks only for a line kept over at least
+    `min_section_length_m`: a line seen for a few metres at a drive's end shows no lane).
 
     An entry or exit lane whose line is painted only where the lane has its full width: the line
     starts with a whole lane between it and the edge, and before its start the edge comes in towards
@@ -1328,9 +1331,11 @@ def _lane_between(ids: list[int], a: int, b: int) -> bool:
 
 def _type_by_width(model: LaneModel, travel: int, cfg: LanesConfig) -> None:
     """An outermost lane that opens from zero width where its section begins and is still at full
-    width where it ends, the lane going on no further (neither of the sections beside holds a lane
-    between its two lines: its outer line ends, or its inner line began at the taper's narrow end),
-    is an exit lane (an entry lane mirrored): its measured taper is its narrow end, and it leaves
+    width where its outer line goes on no further, is an exit lane (an entry lane mirrored); at its
+    narrow end the lane is new whichever of its lines is (the previous section holds no lane between
+    them: its inner line may begin at the taper's narrow end, `_open_beside_edge`), at its wide end
+    its outer line must end (a lane that appears at full width beside a line going on is a ramp's
+    merge for the junction builder): its measured taper is its narrow end, and it leaves
     the road at its wide end (a ramp's lane) rather than closing. Typed like `_type_tapers`' lanes,
     so it keeps its width there instead of a taper being invented. A lane still widening at its end by
     `branch_widening_m` is left to the junction builder (branches.find_events)."""
@@ -1356,15 +1361,17 @@ def _type_by_width(model: LaneModel, travel: int, cfg: LanesConfig) -> None:
             med = float(np.median(w))
             if med < cfg.min_lane_width_m:
                 continue
-            pair = (ids[lane], ids[lane + 1])
-            new_before = j == 0 or not _lane_between(secs[j - 1].boundary_ids, *pair)
-            gone_after = j == len(secs) - 1 or not _lane_between(secs[j + 1].boundary_ids, *pair)
+            pair, outer = (ids[lane], ids[lane + 1]), ids[0 if lane == 0 else -1]
+            lane_before = j > 0 and _lane_between(secs[j - 1].boundary_ids, *pair)
+            lane_after = j < len(secs) - 1 and _lane_between(secs[j + 1].boundary_ids, *pair)
+            outer_before = j > 0 and outer in secs[j - 1].boundary_ids
+            outer_after = j < len(secs) - 1 and outer in secs[j + 1].boundary_ids
             head, tail = float(np.mean(w[:3])), float(np.mean(w[-3:]))
-            opens = new_before and head < 0.5 * med and tail >= 0.8 * med
-            closes = gone_after and tail < 0.5 * med and head >= 0.8 * med
-            if opens and gone_after and j < len(secs) - 1 and tail <= med + cfg.branch_widening_m:
+            opens = not lane_before and head < 0.5 * med and tail >= 0.8 * med
+            closes = not lane_after and tail < 0.5 * med and head >= 0.8 * med
+            if opens and not outer_after and j < len(secs) - 1 and tail <= med + cfg.branch_widening_m:
                 narrow_last = False
-            elif closes and new_before and j > 0:
+            elif closes and not outer_before and j > 0:
                 narrow_last = True
             else:
                 continue
