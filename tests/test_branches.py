@@ -56,17 +56,6 @@ def test_a_diverging_lane_is_an_event_at_its_gore_and_a_steady_road_is_none() ->
     assert 145 <= ev.k <= 160  # where the width was last normal (3.5 + 0.3 m)
 
 
-def test_a_lane_still_widening_where_the_drive_ends_is_no_diverge() -> None:
-    """The drive ends inside the widening (no section after it): the lane was not seen to leave."""
-    road = _road(widen_from=150.0)
-    end = road.sections[0].s_end
-    road.sections = [LaneSection(0.0, end, [0, 1, 2])]
-    road.s, road.reference = road.s[: int(end) + 1], road.reference[: int(end) + 1]
-    for b in road.boundaries:
-        b.t = b.t[: int(end) + 1]
-    assert find_events(road, Config().lanes) == []
-
-
 def test_an_entry_lane_appearing_at_full_width_beside_a_new_outer_line_is_a_merge() -> None:
     """An on-ramp's lane joins at the gore at full width and then tapers out as an acceleration lane:
     typed entry by the lanes stage, and still the merge the junction builder models."""
