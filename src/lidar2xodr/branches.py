@@ -104,18 +104,13 @@ def find_events(model: LaneModel, cfg: LanesConfig) -> list[Event]:
             outer = sec.boundary_ids[lane + 1] if side == "right" else sec.boundary_ids[lane]
             goes_on = j + 1 < n_sec and outer in model.sections[j + 1].boundary_ids
             came = j > 0 and outer in model.sections[j - 1].boundary_ids
-            if tapered:
-                if (not came and j > 0 and float(np.nanmedian(w[:3])) >= _NEW_LANE_SHARE * med
-                        and _is_new(model, j, lane)):
-                    events.append(Event("merge", int(ks[0]), j, lane, side))
-                continue
-            if not goes_on and np.nanmax(w[-3:]) > med + cfg.branch_widening_m:
+            if not tapered and not goes_on and np.nanmax(w[-3:]) > med + cfg.branch_widening_m:
                 i = len(w) - 1
                 while i > 0 and not (w[i] <= med + _NORMAL_MARGIN_M):
                     i -= 1
                 events.append(Event("diverge", int(ks[i]), j, lane, side))
             elif not came and j > 0:
-                if np.nanmax(w[:3]) > med + cfg.branch_widening_m:
+                if not tapered and np.nanmax(w[:3]) > med + cfg.branch_widening_m:
                     i = 0
                     while i < len(w) - 1 and not (w[i] <= med + _NORMAL_MARGIN_M):
                         i += 1

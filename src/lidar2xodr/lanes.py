@@ -1331,13 +1331,14 @@ def _lane_between(ids: list[int], a: int, b: int) -> bool:
 
 def _type_by_width(model: LaneModel, travel: int, cfg: LanesConfig) -> None:
     """An outermost lane that opens from zero width where its section begins and is still at full
-    width where its outer line goes on no further, is an exit lane (an entry lane mirrored); at its
-    narrow end the lane is new whichever of its lines is (the previous section holds no lane between
-    them: its inner line may begin at the taper's narrow end, `_open_beside_edge`), at its wide end
-    its outer line must end (a lane that appears at full width beside a line going on is a ramp's
-    merge for the junction builder): its measured taper is its narrow end, and it leaves
-    the road at its wide end (a ramp's lane) rather than closing. Typed like `_type_tapers`' lanes,
-    so it keeps its width there instead of a taper being invented. A lane still widening at its end by
+    width where its section ends is an exit lane (an entry lane mirrored): its measured taper is its
+    narrow end, and it leaves the road at its wide end (a ramp's lane) rather than closing. Typed
+    like `_type_tapers`' lanes, so it keeps its width there instead of a taper being invented.
+
+    At the narrow end the lane must be new, whichever of its lines is (the section beside holds no
+    lane between them: the inner line may begin at the taper's narrow end, `_open_beside_edge`); at
+    the wide end its outer line must end there (a lane at full width beside an outer line that goes
+    on is a ramp's merge or diverge for the junction builder). A lane still widening at its end by
     `branch_widening_m` is left to the junction builder (branches.find_events)."""
     by_id = {b.id: b for b in model.boundaries}
     secs = model.sections
