@@ -269,3 +269,50 @@ def test_bad_input(tmp_path: Path) -> None:
         compare_maps(tmp_path / "absent.xodr", ref, CFG)
     res = CliRunner().invoke(app, ["compare", str(no_lanes), str(ref)])
     assert res.exit_code == 2 and "Traceback" not in res.output
+
+
+def _lane_roads_junction(tmp_path: Path, ramp: str = "<line/>") -> Path:
+    """Road 1 (0-100 m), a junction of one 20 m connecting road per lane (10, 11; 11's geometry `ramp`),
+    road 2 (120-300 m): the way some tools (roadgen, RoadRunner) write a carriageway through a junction."""
+    def in_junction(road: str, pred: str, succ: str) -> str:
+        road = road.replace('junction="-1"', 'junction="1"')
+        return road.replace("<planView>", f'<link><predecessor elementType="road" elementId="{pred}" '
+                            f'contactPoint="end"/><successor elementType="road" elementId="{succ}" '
+                            'contactPoint="start"/></link><planView>')
+    a = _road("1", 100.0).replace("<planView>", '<link><successor elementType="junction" elementId="1"/></link>'
+                                  "<planView>")
+    b = _road("2", 180.0, x=120.0).replace("<planView>", '<link><predecessor elementType="junction" '
+                                           'elementId="1"/></link><planView>')
+    lane1 = in_junction(_road("10", 20.0, right=(DRV,), x=100.0, offset=-1.0), "1", "2")
+    lane2 = in_junction(_road("11", 20.0, right=(DRV,), x=100.0, offset=-4.5, geom=ramp), "1", "2")
+    junction = ('<junction id="1" name="j">'
+                '<connection id="0" incomingRoad="1" connectingRoad="10" contactPoint="start">'
+                '<laneLink from="-2" to="-1"/></connection>'
+                '<connection id="1" incomingRoad="1" connectingRoad="11" contactPoint="start">'
+                '<laneLink from="-3" to="-1"/></connection></junction>')
+    return _map(tmp_path / "lanes_junction.xodr", a, b, lane1, lane2, junction)
+
+
+def test_a_junction_of_one_road_per_lane_is_one_carriageway(tmp_path: Path) -> None:
+    """Connecting roads that lie side by side are the lanes of one carriageway: a one-road map of the same
+    lanes is 0 away (read one by one, every connecting road was a one-lane carriageway, its centre
+    1.75 m from the true one, and the lane count was wrong over the junction)."""
+    ref = _lane_roads_junction(tmp_path)
+    gen = _map(tmp_path / "gen.xodr", _road("7", 300.0))
+    m = compare_maps(gen, ref, CFG)
+    assert m["centerline"]["max_m"] == pytest.approx(0.0, abs=1e-6)
+    assert m["boundaries"]["max_m"] == pytest.approx(0.0, abs=1e-6)
+    assert m["lane_count_agreement"] == pytest.approx(1.0)
+    back = compare_maps(ref, gen, CFG)
+    assert back["centerline"]["max_m"] == pytest.approx(0.0, abs=1e-6)
+    assert back["lane_count_agreement"] == pytest.approx(1.0)
+
+
+def test_a_connecting_road_that_leaves_is_not_part_of_the_carriageway(tmp_path: Path) -> None:
+    """A ramp's connecting road that turns away from the through lane stays a carriageway of its own:
+    a map that keeps both lanes together through the junction gets the lane count wrong there."""
+    ref = _lane_roads_junction(tmp_path, ramp='<arc curvature="-0.004"/>')
+    gen = _map(tmp_path / "gen.xodr", _road("7", 300.0))
+    m = compare_maps(gen, ref, CFG)
+    assert 0.85 < m["lane_count_agreement"] < 0.97
+    assert m["centerline"]["max_m"] > 1.0

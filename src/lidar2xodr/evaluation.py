@@ -15,7 +15,11 @@ and sidewalks do not count, because a map built from lane markings cannot see th
 boundaries are the borders of its lanes (inner border of the innermost to outer border of the
 outermost lane), its centre line is the midpoint between those two outermost borders, its
 half-width half their distance, its lane count the number of its lanes at least
-`lane_count_min_width_m` wide (opening and closing tapers are not lanes yet). The generated map's
+`lane_count_min_width_m` wide (opening and closing tapers are not lanes yet). Inside a junction,
+connecting roads whose borders coincide side by side (`JUNCTION_BUNDLE_*`) form one carriageway
+(inner to outer, sampled along the innermost): a junction written as one connecting road per lane
+(roadgen, RoadRunner) is then the carriageway it is, not one-lane carriageways each half a
+carriageway off its centre; a ramp's connecting road that turns away stays one of its own. The generated map's
 centre line is derived the same way, not read from its planView: a lidar2xodr map's reference line
 is the road centre, so the two coincide there, and deriving it keeps the metric symmetric
 (`compare X X` is 0 for any map, wherever it puts its reference line).
@@ -103,6 +107,12 @@ DRIVING_TYPES = frozenset(
     )
 )
 HEADING_BIN_DEG = 5.0
+JUNCTION_BUNDLE_TOL_M = 0.1
+"""Connecting roads of one junction whose borders coincide within this are lanes of one carriageway."""
+JUNCTION_BUNDLE_SHARE = 0.9
+"""...over this share of both borders' samples (a ramp that leaves the through lanes is its own)."""
+JUNCTION_BUNDLE_HEADING_DEG = 20.0
+"""...and travelling the same way within this."""
 _K_NEAREST = 4
 
 
@@ -179,15 +189,72 @@ def _runs(ids: list[int], types: dict[int, str]) -> list[list[int]]:
     return runs
 
 
+@dataclass
+class _Piece:
+    """One carriageway run of one lane section, sampled (see `carriageways`)."""
+
+    key: tuple[str, int]
+    junction: str
+    s: np.ndarray
+    travel: np.ndarray
+    borders: list[np.ndarray]  # (n, 2) each, inner to outer
+    border_z: list[np.ndarray]  # (n,) each
+    border_t: list[np.ndarray]  # (n,) each
+
+
+_DENSE = 5
+
+
+def _dense(xy: np.ndarray) -> np.ndarray:
+    """The polyline with `_DENSE` points per segment (nearest-vertex distances then err by < 1/10 step)."""
+    if len(xy) < 2:
+        return xy
+    u = np.arange((len(xy) - 1) * _DENSE + 1) / _DENSE
+    return np.stack([np.interp(u, np.arange(len(xy)), xy[:, k]) for k in range(2)], axis=1)
+
+
+def _side_by_side(inner: _Piece, outer: _Piece, tol: float) -> bool:
+    """`outer` runs along the outer border of `inner`, the same way, over (nearly) all of both."""
+    d, idx = cKDTree(_dense(inner.borders[-1])).query(outer.borders[0])
+    idx = np.minimum(idx // _DENSE, len(inner.travel) - 1)
+    back, _ = cKDTree(_dense(outer.borders[0])).query(inner.borders[-1])
+    same_way = np.abs(_wrap(outer.travel - inner.travel[idx])) < np.radians(JUNCTION_BUNDLE_HEADING_DEG)
+    return bool(np.mean((d <= tol) & same_way) >= JUNCTION_BUNDLE_SHARE
+                and np.mean(back <= tol) >= JUNCTION_BUNDLE_SHARE)
+
+
+def _bundles(pieces: list[_Piece], tol: float) -> list[list[int]]:
+    """Chains (inner to outer) of a junction's pieces that lie side by side: a carriageway whose lanes
+    the map writes as one connecting road per lane. Pieces outside junctions stay alone."""
+    outer_of: dict[int, int] = {}
+    has_inner: set[int] = set()
+    by_junction: dict[str, list[int]] = {}
+    for i, p in enumerate(pieces):
+        if p.junction != "-1":
+            by_junction.setdefault(p.junction, []).append(i)
+    for members in by_junction.values():
+        for i in members:
+            for j in members:
+                if i != j and j not in has_inner and i not in outer_of and _side_by_side(pieces[i], pieces[j], tol):
+                    outer_of[i] = j
+                    has_inner.add(j)
+    chains = []
+    for i in range(len(pieces)):
+        if i in has_inner:
+            continue
+        chain = [i]
+        while chain[-1] in outer_of and outer_of[chain[-1]] not in chain:
+            chain.append(outer_of[chain[-1]])
+        chains.append(chain)
+    return chains
+
+
 def carriageways(odr: Any, step: float, transform: Any = None) -> Carriageways:
     """Sample every carriageway of a map (see the module docstring for what a carriageway is)."""
-    centres: list[tuple[np.ndarray, np.ndarray]] = []
-    bounds: list[tuple[np.ndarray, np.ndarray]] = []
-    query: list[np.ndarray] = []
-    half, group, s_all, lane_xy, lane_w, centre_z = [], [], [], [], [], []
-    groups: dict[tuple[str, int], int] = {}
+    pieces: list[_Piece] = []
     for sec in odr.sample(step):
-        rule = getattr(odr.roads[sec.road_id], "rule", "RHT")
+        road = odr.roads[sec.road_id]
+        rule = getattr(road, "rule", "RHT")
         border_xy = {lid: sec.border_xyz[lid][:, :2] for lid in sec.lane_ids}
         hdg = sec.hdg
         if transform is not None:
@@ -198,22 +265,40 @@ def carriageways(odr: Any, step: float, transform: Any = None) -> Carriageways:
             ids = sorted((i for i in sec.lane_ids if i * side > 0), key=abs)
             for run in _runs(ids, sec.lane_types):
                 border_ids = [run[0] - side, *run]
-                inner, outer = border_xy[border_ids[0]], border_xy[border_ids[-1]]
-                centres.append((0.5 * (inner + outer), travel))
-                centre_z.append(0.5 * (sec.border_xyz[border_ids[0]][:, 2] + sec.border_xyz[border_ids[-1]][:, 2]))
-                half.append(0.5 * np.abs(sec.border_t[border_ids[-1]] - sec.border_t[border_ids[0]]))
-                group.append(np.full(len(sec.s), groups.setdefault((sec.road_id, side), len(groups))))
-                s_all.append(sec.s)
-                prev_t = None
-                for bid in border_ids:
-                    bounds.append((border_xy[bid], travel))
-                    t = sec.border_t[bid]
-                    query.append(np.ones(len(t), bool) if prev_t is None else np.abs(t - prev_t) > 1e-3)
-                    prev_t = t
-                lane_xy.append(np.stack([0.5 * (border_xy[a] + border_xy[b])
-                                         for a, b in zip(border_ids, border_ids[1:], strict=False)], axis=1))
-                lane_w.append(np.stack([np.abs(sec.border_t[b] - sec.border_t[a])
-                                        for a, b in zip(border_ids, border_ids[1:], strict=False)], axis=1))
+                pieces.append(_Piece((sec.road_id, side), str(getattr(road, "junction", "-1")), sec.s, travel,
+                                     [border_xy[b] for b in border_ids],
+                                     [sec.border_xyz[b][:, 2] for b in border_ids],
+                                     [sec.border_t[b] for b in border_ids]))
+    centres: list[tuple[np.ndarray, np.ndarray]] = []
+    bounds: list[tuple[np.ndarray, np.ndarray]] = []
+    query: list[np.ndarray] = []
+    half, group, s_all, lane_xy, lane_w, centre_z = [], [], [], [], [], []
+    groups: dict[tuple[str, int], int] = {}
+    for p in pieces:
+        prev_t = None
+        for xy, t in zip(p.borders, p.border_t, strict=True):
+            bounds.append((xy, p.travel))
+            query.append(np.ones(len(t), bool) if prev_t is None else np.abs(t - prev_t) > 1e-3)
+            prev_t = t
+    for chain in _bundles(pieces, JUNCTION_BUNDLE_TOL_M):
+        base = pieces[chain[0]]
+        borders, z, widths = list(base.borders), list(base.border_z), [
+            np.abs(b - a) for a, b in zip(base.border_t, base.border_t[1:], strict=False)]
+        for j in chain[1:]:
+            p = pieces[j]
+            _, idx = cKDTree(p.borders[0]).query(borders[-1])
+            borders += [b[idx] for b in p.borders[1:]]
+            z += [b[idx] for b in p.border_z[1:]]
+            widths += [np.abs(b - a)[idx] for a, b in zip(p.border_t, p.border_t[1:], strict=False)]
+        inner, outer = borders[0], borders[-1]
+        centres.append((0.5 * (inner + outer), base.travel))
+        centre_z.append(0.5 * (z[0] + z[-1]))
+        half.append(0.5 * (np.abs(base.border_t[-1] - base.border_t[0]) if len(chain) == 1
+                           else np.hypot(*(outer - inner).T)))
+        group.append(np.full(len(base.s), groups.setdefault(base.key, len(groups))))
+        s_all.append(base.s)
+        lane_xy.append(np.stack([0.5 * (a + b) for a, b in zip(borders, borders[1:], strict=False)], axis=1))
+        lane_w.append(np.stack(widths, axis=1))
     n_lanes = max((w.shape[1] for w in lane_w), default=0)
     pad_xy = [np.pad(x, ((0, 0), (0, n_lanes - x.shape[1]), (0, 0)), constant_values=np.nan) for x in lane_xy]
     pad_w = [np.pad(w, ((0, 0), (0, n_lanes - w.shape[1])), constant_values=np.nan) for w in lane_w]
