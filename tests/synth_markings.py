@@ -144,6 +144,7 @@ def make_road(
     opposite: float | None = None,
     two_way: tuple[float, ...] | None = None,
     ramp: tuple[float, float] | None = None,
+    double_line: tuple[int, float, float, float] | None = None,
     ego_lane: int = 1,
     lane_change_at: float | None = None,
     start_xy: tuple[float, float] = (5.0, 2.0),
@@ -156,7 +157,9 @@ def make_road(
     `two_way` = lane widths of the other direction, painted left of the left edge line (which then
     only divides the directions: a paint-only two-way road; sparse, a few occlusions);
     `lane_change_at` moves the ego one lane to the right over 100 m from that station; `ramp` =
-    (s0, angle in degrees) draws the two solid edges of a ramp that leaves the right edge at s0.
+    (s0, angle in degrees) draws the two solid edges of a ramp that leaves the right edge at s0;
+    `double_line` = (line index, spacing, s_a, s_b) paints line `index` between s_a and s_b as a double
+    line, a solid and a broken one that far apart on either side of it (the truth stays its midpoint).
     """
     rng = np.random.default_rng(seed)
     pieces = pieces or [straight(1000.0)]
@@ -188,6 +191,13 @@ def make_road(
 
     ego_t = edges[ego_lane] - lane_widths[ego_lane] / 2.0
     others: list[Line] = []
+    doubles: list[Line] = []
+    if double_line is not None:
+        i, spacing, s_a, s_b = double_line
+        lines[i].gaps.append((s_a, s_b))
+        doubles = [Line(f"{lines[i].name}_solid", lines[i].offset + spacing / 2, "solid", 0.15, s_a, s_b),
+                   Line(f"{lines[i].name}_broken", lines[i].offset - spacing / 2, "broken", 0.15, s_a, s_b,
+                        phase=s_a)]
     if opposite is not None:
         base = edges[0] + opposite
         for i, w in enumerate([0.0, *lane_widths]):
@@ -227,6 +237,8 @@ def make_road(
         chunks.append(_paint(line, rng, density, ego_t))
     for line in others:
         chunks.append(_paint(line, rng, 0.5 * density, ego_t))
+    for line in doubles:
+        chunks.append(_paint(line, rng, density, ego_t))
     st = np.concatenate(chunks) if chunks else np.zeros((0, 2))
     if guard_rail is not None:
         s_g = rng.uniform(0.0, length, int(length * 30))

@@ -625,3 +625,17 @@ def test_a_road_found_on_no_axis_is_one_input_error_after_both_are_tried(monkeyp
     with pytest.raises(InputError, match="no stretch of road has two marking lines a lane apart"):
         _build(road)
     assert len(tried) == 2, "both road axes were tried"
+
+
+@pytest.mark.parametrize("spacing", [0.3, 0.6])
+def test_a_double_line_is_one_boundary_at_its_midpoint(spacing: float) -> None:
+    """A lane line painted as a double line (a solid and a broken one, `spacing` apart) over 300 m of a
+    700 m road is one boundary, at the two lines' midpoint, as OpenDRIVE puts a double mark's lane
+    border; a fit of either line alone is spacing / 2 off there."""
+    road = make_road([straight(250.0), arc(450.0, 3000.0)], lane_widths=(3.75, 3.75, 3.75),
+                     double_line=(1, spacing, 200.0, 500.0), gnss_noise=0.03, seed=21)
+    model = _build(road)
+    res = evaluate(model, road)
+    assert res["lines"]["lane1"]["coverage"] > 0.95
+    assert res["lines"]["lane1"]["rmse"] < 0.06
+    assert res["lane_count_ok"] > 0.98

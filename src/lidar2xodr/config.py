@@ -223,6 +223,13 @@ class LanesConfig(_Section):
                                                "lookup has no neighbour)")
     assign_distance_m: float = Field(0.5, gt=0, description="ours: marking points this close to a boundary belong to "
                                                 "it")
+    double_line_max_spacing_m: float = Field(1.0, gt=0, description="ours: a boundary's points in two parallel modes "
+                                                        "at most this far apart (centre to centre) are a double line, "
+                                                        "whose boundary is their midpoint; farther apart they are two "
+                                                        "boundaries")
+    double_line_block_m: float = Field(20.0, gt=0, description="ours: stretch over which a double line's two modes "
+                                                  "are counted (a broken line's dash and gap fit in it); a double "
+                                                  "line spans three such blocks or more")
     boundary_smoothing_m: float = Field(40.0, gt=0, description="ours: shortest wavelength kept in a boundary's t(s) "
                                                     "(robust Whittaker smoother)")
     reference_smoothing_m: float = Field(60.0, gt=0, description="ours: shortest wavelength kept in the reference line")

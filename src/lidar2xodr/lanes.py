@@ -532,6 +532,101 @@ def _robust_curve(
     return out, w_pt, observed
 
 
+def _refit_double(curve: np.ndarray, k: np.ndarray, t: np.ndarray, k_free: np.ndarray, t_free: np.ndarray, m: int,
+                  lam: float, double: tuple[float, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """A line's `_robust_curve` again where its points (k, t), with the unlabelled points (sorted by
+    station) within `double[0]` of its curve, form a double line (`_fold_double_lines`): the second
+    line's points lie farther from the first than points are labelled to it, so they are not the
+    line's yet. None where there is no double line."""
+    fin = np.flatnonzero(np.isfinite(curve))
+    if double[0] <= 0.0 or len(fin) == 0:
+        return None
+    lo, hi = np.searchsorted(k_free, [fin[0], fin[-1] + 1])
+    near = np.abs(t_free[lo:hi] - curve[k_free[lo:hi]]) <= double[0]
+    k_all = np.concatenate([k, k_free[lo:hi][near]])
+    t_all = np.concatenate([t, t_free[lo:hi][near]])
+    t_fold, folded = _fold_double_lines(k_all, t_all, m, lam, double)
+    if not folded.any():
+        return None
+    keep = (np.arange(len(k_all)) < len(k)) | folded
+    return _robust_curve(k_all[keep], t_fold[keep], m, lam)
+
+
+def _two_modes(r: np.ndarray) -> tuple[float, float, np.ndarray] | None:
+    """Two 1D clusters of residuals r (split where the between-class variance is largest, Otsu's
+    rule): their centres and membership, or None when they are not two resolved modes (each >= 15 %
+    of the points, centres >= 4 sigma of either apart)."""
+    n = len(r)
+    if n < 20:
+        return None
+    srt = np.sort(r)
+    cum = np.cumsum(srt)
+    i = np.arange(1, n)
+    lo_mean = cum[:-1] / i
+    hi_mean = (cum[-1] - cum[:-1]) / (n - i)
+    split = int(np.argmax(i * (n - i) * (hi_mean - lo_mean) ** 2))
+    cut = 0.5 * (srt[split] + srt[split + 1])
+    hi = r > cut
+    share = float(hi.mean())
+    if min(share, 1.0 - share) < 0.15:
+        return None
+    c0, c1 = float(r[~hi].mean()), float(r[hi].mean())
+    if c1 - c0 < 4.0 * max(float(r[~hi].std()), float(r[hi].std())):
+        return None
+    return c0, c1, hi
+
+
+def _fold_double_lines(k: np.ndarray, t: np.ndarray, n: int, lam: float, double: tuple[float, int]
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """One line's points with every double line folded onto its midpoint.
+
+    A double line (two parallel lines, solid or broken, painted on one lane border: a no-overtaking
+    centre line, a 2+1 road's divider) gives one boundary two modes of points a few decimetres apart;
+    the robust fit would keep one of them, or hop between them. Per block of `double[1]` stations
+    the points' offsets from a smooth trend through all of them are split into two clusters; blocks
+    whose two clusters are resolved (`_two_modes`) and at most `double[0]` apart, in runs of three
+    blocks or more with the same spacing (within `_DOUBLE_SPACING_SPREAD_M`: the two lines of a
+    taper or a gore converge or spread),
+    move each cluster by half the spacing onto the midpoint. Other points are returned unchanged.
+    Returns the offsets and which points lie in a double line's blocks.
+    """
+    max_spacing, block = double
+    folded = np.zeros(len(t), dtype=bool)
+    if max_spacing <= 0.0 or len(t) < 40:
+        return t, folded
+    trend = _whittaker_points(k, t, np.ones(len(t)), n, 256.0 * lam)
+    r = t - trend[k]
+    blocks = k // block
+    found: dict[int, tuple[float, float, np.ndarray, np.ndarray]] = {}
+    for b in np.unique(blocks):
+        idx = np.flatnonzero(blocks == b)
+        modes = _two_modes(r[idx])
+        if modes is not None and modes[1] - modes[0] <= max_spacing:
+            found[int(b)] = (modes[0], modes[1], idx, modes[2])
+    if not found:
+        return t, folded
+    out = t.copy()
+    keys = sorted(found)
+    runs, cur = [], [keys[0]]
+    for b in keys[1:]:
+        if b == cur[-1] + 1:
+            cur.append(b)
+        else:
+            runs.append(cur)
+            cur = [b]
+    runs.append(cur)
+    for run in runs:
+        spacing = np.array([found[b][1] - found[b][0] for b in run])
+        if len(run) < 3 or np.ptp(spacing) > _DOUBLE_SPACING_SPREAD_M:
+            continue
+        for b in run:
+            lo, hi_c, idx, hi = found[b]
+            mid = 0.5 * (lo + hi_c)
+            out[idx] = t[idx] - np.where(hi, hi_c - mid, lo - mid)
+            folded[idx] = True
+    return out, folded
+
+
 def _whittaker_points(k: np.ndarray, t: np.ndarray, w: np.ndarray, m: int, lam: float) -> np.ndarray:
     """Whittaker curve through weighted points binned on stations 0..m-1 (NaN outside their span)."""
     out = np.full(m, np.nan)
@@ -1058,6 +1153,7 @@ def _extend(
 
 
 LANE_TYPES = ("driving", "entry", "exit")
+_DOUBLE_SPACING_SPREAD_M = 0.1  # a double line's two lines keep their spacing within this over its blocks
 _SLOPE_STEP = 0.005  # slope grid of the taper line search: 0.25 m over a 50 m window
 
 
@@ -1606,13 +1702,14 @@ def _build_on_frame(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lanes
     tapers: list[_Taper] = []
     taper_notes: list[str] = []
     off = np.zeros(len(xyz), dtype=bool)  # points of taper lines found: refitted without them (they bend the edge)
+    double = (cfg.double_line_max_spacing_m, max(int(round(cfg.double_line_block_m / step)), 1))
     for it in range(3):
         k_pt, t_pt, inside, s_pt = _stations(frame, xyz[:, :2])
         t_ego = _ego_offsets(frame, ego)
         for _ in range(3):
             use = np.where(off, -1, label)
             fit = _fit_boundaries(k_pt, t_pt, use, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)),
-                                  cfg.same_line_tolerance_m)
+                                  cfg.same_line_tolerance_m, double)
             root = _continuations(fit.t, int(round(cfg.line_join_gap_m / step)), cfg.same_line_tolerance_m,
                                   int(round(10.0 / step)))
             if np.any(root != np.arange(n_sl)):
@@ -1620,7 +1717,7 @@ def _build_on_frame(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lanes
                 use = np.where(off, -1, label)
                 superline = root[superline]
                 fit = _fit_boundaries(k_pt, t_pt, use, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)),
-                                      cfg.same_line_tolerance_m)
+                                      cfg.same_line_tolerance_m, double)
             crossing = _crossing_points(fit.t, use, k_pt, t_pt, cfg.assign_distance_m)
             short = np.isfinite(fit.t).sum(axis=1) * step < cfg.min_section_length_m
             n_short = int(np.sum(short & np.isfinite(fit.t).any(axis=1)))
@@ -1714,19 +1811,29 @@ def _fit_boundaries(
     lam: float,
     gap: int,
     parallel_m: float,
+    double: tuple[float, int] = (0.0, 1),
 ) -> _Fit:
+    """Every labelled line's t(s) (`_robust_curve` of its points, double lines folded onto their
+    midpoint: `double` = (largest spacing, block stations), see `_fold_double_lines`), bridged across
+    unobserved stretches."""
     out = np.full((n_sl, m), np.nan)
     support = np.zeros(n_sl)
     use = (label >= 0) & inside
     order = np.argsort(label[use], kind="stable")
     lab, kk, tt = label[use][order], k[use][order], t[use][order]
     bounds = np.searchsorted(lab, np.arange(n_sl + 1))
+    free = (label < 0) & inside
+    by_k = np.argsort(k[free], kind="stable")
+    k_free, t_free = k[free][by_k], t[free][by_k]
     observed = np.zeros((n_sl, m), dtype=bool)
     for b in range(n_sl):
         sl = slice(bounds[b], bounds[b + 1])
         if bounds[b + 1] - bounds[b] < 10:
             continue
         out[b], w, observed[b] = _robust_curve(kk[sl], tt[sl], m, lam)
+        again = _refit_double(out[b], kk[sl], tt[sl], k_free, t_free, m, lam, double)
+        if again is not None:
+            out[b], w, observed[b] = again
         support[b] = float(w.sum())
     _bridge_gaps(out, observed, gap, parallel_m)
     return _Fit(out, support)
