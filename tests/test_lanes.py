@@ -639,3 +639,30 @@ def test_a_double_line_is_one_boundary_at_its_midpoint(spacing: float) -> None:
     assert res["lines"]["lane1"]["coverage"] > 0.95
     assert res["lines"]["lane1"]["rmse"] < 0.06
     assert res["lane_count_ok"] > 0.98
+
+
+def test_a_short_piece_beyond_a_long_gap_does_not_carry_a_line_on() -> None:
+    """A solid line that ends at station 300, with a few sparse points of something else on its course
+    40 m later (a blob, a diverging ramp's paint), ends at 300: fitted through them it ran on across
+    the gap (an exit lane carried into the junction after it). A broken line's dashes (its last one
+    after a missed one too), a line seen again over more than 20 stations after an occlusion, and a
+    short piece as dense as the line are fitted as before."""
+    from lidar2xodr.lanes import _robust_curve
+
+    rng = np.random.default_rng(3)
+    k = np.repeat(np.arange(0, 301), 5)
+    blob = np.arange(340, 352)
+    t = np.full(len(k), -5.0) + rng.normal(0, 0.03, len(k))
+    kk, tt = np.concatenate([k, blob]), np.concatenate([t, np.full(len(blob), -5.1)])
+    curve, w, observed = _robust_curve(kk, tt, 400, 1e4)
+    assert np.isfinite(curve[:301]).all() and not np.isfinite(curve[301:]).any()
+    assert not observed[301:].any() and np.all(w[len(k):] == 0.0)
+    dashes = np.concatenate([np.repeat(np.arange(a, a + 6), 5) for a in range(0, 390, 18) if a != 360])
+    curve, _, _ = _robust_curve(dashes, np.full(len(dashes), -1.5), 400, 1e4)
+    assert np.isfinite(curve[: dashes.max() + 1]).all()  # the last dash, after a missed one, stays
+    again = np.concatenate([k, np.repeat(np.arange(340, 380), 5)])
+    curve, _, _ = _robust_curve(again, np.full(len(again), -5.0), 400, 1e4)
+    assert np.isfinite(curve[:380]).all()
+    piece = np.concatenate([k, np.repeat(np.arange(340, 346), 5)])  # as dense as the line: the line itself
+    curve, _, _ = _robust_curve(piece, np.full(len(piece), -5.0), 400, 1e4)
+    assert np.isfinite(curve[:346]).all()

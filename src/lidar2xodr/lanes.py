@@ -524,6 +524,7 @@ def _robust_curve(
         if abs(float(np.median(t[island] - pred))) > max(0.2, 3.0 * scale):
             w_pt[island] = 0.0
             observed[a:b] = False
+    _drop_end_islands(k, w_pt, observed)
     keep = w_pt > 0
     if keep.sum() < 2:
         return out, w_pt, observed
@@ -625,6 +626,39 @@ def _fold_double_lines(k: np.ndarray, t: np.ndarray, n: int, lam: float, double:
             out[idx] = t[idx] - np.where(hi, hi_c - mid, lo - mid)
             folded[idx] = True
     return out, folded
+
+
+def _drop_end_islands(k: np.ndarray, w_pt: np.ndarray, observed: np.ndarray) -> None:
+    """Points of a line's first or last piece, when that piece spans fewer than `_ABSENT_RUN`
+    stations and lies `_ABSENT_RUN` stations or more from the rest of the line (pieces: stations
+    with points, joined across shorter gaps), get weight 0 when the rest of the line next to the gap
+    (its `2 * _ABSENT_RUN` stations) is solid (points on 80 % of them) and the piece holds fewer
+    than half as many points per station as that rest: a solid line that ended is not carried on
+    across the gap by a blob or a diverging ramp's paint beyond it (an exit lane was carried into the
+    junction after it). A broken line's end piece is its next dash after a missed one, and a dense
+    piece is the line itself beyond an occlusion: both stay."""
+    for _ in range(2):
+        has = np.zeros(len(observed), dtype=bool)
+        has[k[w_pt > 0]] = True
+        occupied = np.flatnonzero(has)
+        if len(occupied) < 2:
+            return
+        cuts = np.flatnonzero(np.diff(occupied) >= _ABSENT_RUN)
+        if len(cuts) == 0:
+            return
+        reach = 2 * _ABSENT_RUN
+        first = (int(occupied[0]), int(occupied[cuts[0]]) + 1, int(occupied[cuts[0] + 1]))
+        last = (int(occupied[cuts[-1] + 1]), int(occupied[-1]) + 1, int(occupied[cuts[-1]]) + 1 - reach)
+        for a, b, rest in (first, last):
+            lo = max(rest, 0)
+            window = has[lo : rest + reach]
+            if b - a >= _ABSENT_RUN or len(window) == 0 or window.mean() < 0.8:
+                continue
+            piece = (k >= a) & (k < b) & (w_pt > 0)
+            near = (k >= lo) & (k < rest + reach) & (w_pt > 0)
+            if piece.sum() / has[a:b].sum() < 0.5 * near.sum() / window.sum():
+                w_pt[piece] = 0.0
+                observed[a:b] = False
 
 
 def _whittaker_points(k: np.ndarray, t: np.ndarray, w: np.ndarray, m: int, lam: float) -> np.ndarray:
