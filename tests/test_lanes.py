@@ -506,7 +506,7 @@ def test_aimotive_highway_gives_two_through_lanes(shared_data: Path) -> None:
 def test_carriageway_choice_without_lines_is_empty_not_a_crash() -> None:
     """A drive whose candidates all fall out before the structure step (seen on a simulated
     Ex_Line-Spiral-Arc drive) reached the carriageway choice with no line: it raised ValueError."""
-    from lidar2xodr.lanes import _choose_carriageway
+    from lidar2xodr.lanes.structure import _choose_carriageway
 
     for b_n, m in ((0, 12), (3, 0)):
         keep = _choose_carriageway(np.full((b_n, m), np.nan), np.zeros((b_n, m), bool), None,
@@ -609,7 +609,7 @@ def test_unpainted_border_survives_lanes_json_and_is_written_without_a_mark(tmp_
 def test_a_road_found_on_no_axis_is_one_input_error_after_both_are_tried(monkeypatch: pytest.MonkeyPatch) -> None:
     """Where the first axis finds no stretch with two lines a lane apart, the longest line's axis is
     tried; where neither does, the error names the marking cloud (not an internal exception)."""
-    import lidar2xodr.lanes as lanes_mod
+    import lidar2xodr.lanes.build as lanes_mod
 
     road = make_road([straight(300.0)], gnss_noise=0.05, seed=5)
     tried: list[int] = []
@@ -647,7 +647,7 @@ def test_a_short_piece_beyond_a_long_gap_does_not_carry_a_line_on() -> None:
     the gap (an exit lane carried into the junction after it). A broken line's dashes (its last one
     after a missed one too), a line seen again over more than 20 stations after an occlusion, and a
     short piece as dense as the line are fitted as before."""
-    from lidar2xodr.lanes import _robust_curve
+    from lidar2xodr.lanes.tracks import _robust_curve
 
     rng = np.random.default_rng(3)
     k = np.repeat(np.arange(0, 301), 5)

@@ -7,7 +7,10 @@ import numpy as np
 
 from lidar2xodr.config import LanesConfig
 from lidar2xodr.data import Boundary, LaneModel, LaneSection
-from lidar2xodr.lanes import _bridge_gaps, _fork_curves, _open_beside_edge, _type_by_width
+from lidar2xodr.lanes.labels import _fork_curves
+from lidar2xodr.lanes.structure import _open_beside_edge
+from lidar2xodr.lanes.tapers import _type_by_width
+from lidar2xodr.lanes.tracks import _bridge_gaps
 
 M = 300
 

@@ -7,7 +7,9 @@ from synth_markings import SynthRoad, make_road, model_lines, polyline_distance,
 
 from lidar2xodr.config import LanesConfig, MarkingsConfig
 from lidar2xodr.data import LaneModel, Trajectory
-from lidar2xodr.lanes import _continuations, _hold_to, _observed, build_lane_model
+from lidar2xodr.lanes import build_lane_model
+from lidar2xodr.lanes.structure import _hold_to
+from lidar2xodr.lanes.tracks import _continuations, _observed
 from lidar2xodr.markings import find_candidates
 
 LCFG = LanesConfig()

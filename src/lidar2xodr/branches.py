@@ -275,7 +275,7 @@ def _branch_cloud(cloud: MarkingCloud, main: LaneModel, ev: Event, kept_lines: l
 
 def _chained(cloud: MarkingCloud, cfg: LanesConfig, markings_cfg: MarkingsConfig) -> MarkingCloud:
     """The points of marking lines (candidates) whose points span `branch_min_line_m` or more."""
-    from lidar2xodr.lanes import _label_by_candidates
+    from lidar2xodr.lanes.labels import _label_by_candidates
     from lidar2xodr.markings import find_candidates
 
     if len(cloud.xyz) == 0:

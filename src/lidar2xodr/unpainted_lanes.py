@@ -20,7 +20,7 @@ import numpy as np
 
 from lidar2xodr.config import LanesConfig
 from lidar2xodr.data import TAPER_LANE_TYPES, LaneModel
-from lidar2xodr.lanes import _runs
+from lidar2xodr.lanes.smoothing import _runs
 
 
 def _taper_beside(on: np.ndarray, t: np.ndarray, b: int, side: float, s: int, e: int, narrow: float) -> bool:

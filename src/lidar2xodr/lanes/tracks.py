@@ -1,0 +1,398 @@
+"""Line tracks: every marking line as a fitted offset t(s) along the frame, with where it was seen."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from lidar2xodr.lanes.smoothing import _runs, _tukey_fit, _whittaker_points
+
+_ABSENT_RUN = 20  # stations (m) a line must be seen to be absent before it is no longer carried
+_ALONG_SLOPE = 0.1  # lines joined across a gap run along the road there (within ~6 deg of the frame)
+_DOUBLE_SPACING_SPREAD_M = 0.1  # a double line's two lines keep their spacing within this over its blocks
+
+
+def _robust_curve(
+    k: np.ndarray, t: np.ndarray, n: int, lam: float, iters: int = 3
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Robust t(s) on stations: Whittaker over the points' span with Tukey weights; NaN outside.
+
+    Short islands of points (at most 10 m: a dash, a blob) that sit off the curve fitted without
+    them (local refit over +-80 m) are dropped: a blob in a gap or an occluded stretch would
+    otherwise bend the line towards it. Returns the curve, the points' final weights and which
+    stations are observed (3 points or more, in runs of 3 stations or more).
+    """
+    out = np.full(n, np.nan)
+    w_pt = np.ones(len(t))
+    observed = np.zeros(n, dtype=bool)
+    if len(t) == 0:
+        return out, w_pt, observed
+    observed = np.bincount(k, minlength=n) >= 3
+    for a, b in _runs(observed):
+        if b - a < 3:
+            observed[a:b] = False
+    w_pt, scale = _tukey_fit(k, t, w_pt, n, lam, iters)
+    has_points = np.bincount(k, minlength=n) > 0
+    for a, b in _runs(has_points | (np.convolve(has_points, np.ones(3), "same") >= 2)):
+        if b - a > 10:
+            continue
+        island = (k >= a - 2) & (k < b + 2)
+        lo, hi = max(a - 80, 0), min(b + 80, n)
+        near = (k >= lo) & (k < hi) & ~island & (w_pt > 0)
+        if near.sum() < 10:
+            continue
+        z = _whittaker_points(k[near] - lo, t[near], w_pt[near], hi - lo, lam)
+        span = np.flatnonzero(np.isfinite(z))
+        pred = z[np.clip(k[island] - lo, span[0], span[-1])]
+        if abs(float(np.median(t[island] - pred))) > max(0.2, 3.0 * scale):
+            w_pt[island] = 0.0
+            observed[a:b] = False
+    _drop_end_islands(k, w_pt, observed)
+    keep = w_pt > 0
+    if keep.sum() < 2:
+        return out, w_pt, observed
+    lo, hi = int(k[keep].min()), int(k[keep].max())
+    out[lo : hi + 1] = _whittaker_points(k[keep] - lo, t[keep], w_pt[keep], hi - lo + 1, lam)
+    return out, w_pt, observed
+
+
+def _refit_double(curve: np.ndarray, k: np.ndarray, t: np.ndarray, k_free: np.ndarray, t_free: np.ndarray, m: int,
+                  lam: float, double: tuple[float, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """A line's `_robust_curve` again where its points (k, t), with the unlabelled points (sorted by
+    station) within `double[0]` of its curve, form a double line (`_fold_double_lines`): the second
+    line's points lie farther from the first than points are labelled to it, so they are not the
+    line's yet. None where there is no double line."""
+    fin = np.flatnonzero(np.isfinite(curve))
+    if double[0] <= 0.0 or len(fin) == 0:
+        return None
+    lo, hi = np.searchsorted(k_free, [fin[0], fin[-1] + 1])
+    near = np.abs(t_free[lo:hi] - curve[k_free[lo:hi]]) <= double[0]
+    k_all = np.concatenate([k, k_free[lo:hi][near]])
+    t_all = np.concatenate([t, t_free[lo:hi][near]])
+    t_fold, folded = _fold_double_lines(k_all, t_all, m, lam, double)
+    if not folded.any():
+        return None
+    keep = (np.arange(len(k_all)) < len(k)) | folded
+    return _robust_curve(k_all[keep], t_fold[keep], m, lam)
+
+
+def _two_modes(r: np.ndarray) -> tuple[float, float, np.ndarray] | None:
+    """Two 1D clusters of residuals r (split where the between-class variance is largest, Otsu's
+    rule): their centres and membership, or None when they are not two resolved modes (each >= 15 %
+    of the points, centres >= 4 sigma of either apart)."""
+    n = len(r)
+    if n < 20:
+        return None
+    srt = np.sort(r)
+    cum = np.cumsum(srt)
+    i = np.arange(1, n)
+    lo_mean = cum[:-1] / i
+    hi_mean = (cum[-1] - cum[:-1]) / (n - i)
+    split = int(np.argmax(i * (n - i) * (hi_mean - lo_mean) ** 2))
+    cut = 0.5 * (srt[split] + srt[split + 1])
+    hi = r > cut
+    share = float(hi.mean())
+    if min(share, 1.0 - share) < 0.15:
+        return None
+    c0, c1 = float(r[~hi].mean()), float(r[hi].mean())
+    if c1 - c0 < 4.0 * max(float(r[~hi].std()), float(r[hi].std())):
+        return None
+    return c0, c1, hi
+
+
+def _fold_double_lines(k: np.ndarray, t: np.ndarray, n: int, lam: float, double: tuple[float, int]
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """One line's points with every double line folded onto its midpoint.
+
+    A double line (two parallel lines, solid or broken, painted on one lane border: a no-overtaking
+    centre line, a 2+1 road's divider) gives one boundary two modes of points a few decimetres apart;
+    the robust fit would keep one of them, or hop between them. Per block of `double[1]` stations
+    the points' offsets from a smooth trend through all of them are split into two clusters; blocks
+    whose two clusters are resolved (`_two_modes`) and at most `double[0]` apart, in runs of three
+    blocks or more with the same spacing (within `_DOUBLE_SPACING_SPREAD_M`: the two lines of a
+    taper or a gore converge or spread),
+    move each cluster by half the spacing onto the midpoint. Other points are returned unchanged.
+    Returns the offsets and which points lie in a double line's blocks.
+    """
+    max_spacing, block = double
+    folded = np.zeros(len(t), dtype=bool)
+    if max_spacing <= 0.0 or len(t) < 40:
+        return t, folded
+    trend = _whittaker_points(k, t, np.ones(len(t)), n, 256.0 * lam)
+    r = t - trend[k]
+    blocks = k // block
+    found: dict[int, tuple[float, float, np.ndarray, np.ndarray]] = {}
+    for b in np.unique(blocks):
+        idx = np.flatnonzero(blocks == b)
+        modes = _two_modes(r[idx])
+        if modes is not None and modes[1] - modes[0] <= max_spacing:
+            found[int(b)] = (modes[0], modes[1], idx, modes[2])
+    if not found:
+        return t, folded
+    out = t.copy()
+    keys = sorted(found)
+    runs, cur = [], [keys[0]]
+    for b in keys[1:]:
+        if b == cur[-1] + 1:
+            cur.append(b)
+        else:
+            runs.append(cur)
+            cur = [b]
+    runs.append(cur)
+    for run in runs:
+        spacing = np.array([found[b][1] - found[b][0] for b in run])
+        if len(run) < 3 or np.ptp(spacing) > _DOUBLE_SPACING_SPREAD_M:
+            continue
+        for b in run:
+            lo, hi_c, idx, hi = found[b]
+            mid = 0.5 * (lo + hi_c)
+            out[idx] = t[idx] - np.where(hi, hi_c - mid, lo - mid)
+            folded[idx] = True
+    return out, folded
+
+
+def _drop_end_islands(k: np.ndarray, w_pt: np.ndarray, observed: np.ndarray) -> None:
+    """Points of a line's first or last piece, when that piece spans fewer than `_ABSENT_RUN`
+    stations and lies `_ABSENT_RUN` stations or more from the rest of the line (pieces: stations
+    with points, joined across shorter gaps), get weight 0 when the rest of the line next to the gap
+    (its `2 * _ABSENT_RUN` stations) is solid (points on 80 % of them) and the piece holds fewer
+    than half as many points per station as that rest: a solid line that ended is not carried on
+    across the gap by a blob or a diverging ramp's paint beyond it (an exit lane was carried into the
+    junction after it). A broken line's end piece is its next dash after a missed one, and a dense
+    piece is the line itself beyond an occlusion: both stay."""
+    for _ in range(2):
+        has = np.zeros(len(observed), dtype=bool)
+        has[k[w_pt > 0]] = True
+        occupied = np.flatnonzero(has)
+        if len(occupied) < 2:
+            return
+        cuts = np.flatnonzero(np.diff(occupied) >= _ABSENT_RUN)
+        if len(cuts) == 0:
+            return
+        reach = 2 * _ABSENT_RUN
+        first = (int(occupied[0]), int(occupied[cuts[0]]) + 1, int(occupied[cuts[0] + 1]))
+        last = (int(occupied[cuts[-1] + 1]), int(occupied[-1]) + 1, int(occupied[cuts[-1]]) + 1 - reach)
+        for a, b, rest in (first, last):
+            lo = max(rest, 0)
+            window = has[lo : rest + reach]
+            if b - a >= _ABSENT_RUN or len(window) == 0 or window.mean() < 0.8:
+                continue
+            piece = (k >= a) & (k < b) & (w_pt > 0)
+            near = (k >= lo) & (k < rest + reach) & (w_pt > 0)
+            if piece.sum() / has[a:b].sum() < 0.5 * near.sum() / window.sum():
+                w_pt[piece] = 0.0
+                observed[a:b] = False
+
+
+@dataclass
+class _Fit:
+    t: np.ndarray  # (B, M)
+    support: np.ndarray  # (B,) points used
+
+
+def _fit_boundaries(
+    k: np.ndarray,
+    t: np.ndarray,
+    label: np.ndarray,
+    inside: np.ndarray,
+    n_sl: int,
+    m: int,
+    lam: float,
+    gap: int,
+    parallel_m: float,
+    double: tuple[float, int] = (0.0, 1),
+) -> _Fit:
+    """Every labelled line's t(s) (`_robust_curve` of its points, double lines folded onto their
+    midpoint: `double` = (largest spacing, block stations), see `_fold_double_lines`), bridged across
+    unobserved stretches."""
+    out = np.full((n_sl, m), np.nan)
+    support = np.zeros(n_sl)
+    use = (label >= 0) & inside
+    order = np.argsort(label[use], kind="stable")
+    lab, kk, tt = label[use][order], k[use][order], t[use][order]
+    bounds = np.searchsorted(lab, np.arange(n_sl + 1))
+    free = (label < 0) & inside
+    by_k = np.argsort(k[free], kind="stable")
+    k_free, t_free = k[free][by_k], t[free][by_k]
+    observed = np.zeros((n_sl, m), dtype=bool)
+    for b in range(n_sl):
+        sl = slice(bounds[b], bounds[b + 1])
+        if bounds[b + 1] - bounds[b] < 10:
+            continue
+        out[b], w, observed[b] = _robust_curve(kk[sl], tt[sl], m, lam)
+        again = _refit_double(out[b], kk[sl], tt[sl], k_free, t_free, m, lam, double)
+        if again is not None:
+            out[b], w, observed[b] = again
+        support[b] = float(w.sum())
+    _bridge_gaps(out, observed, gap, parallel_m)
+    return _Fit(out, support)
+
+
+def _continuations(t: np.ndarray, gap_max: int, tol: float, probe: int) -> np.ndarray:
+    """Row each fitted line joins: a line that ends where another begins, at the same offset, goes on in it.
+
+    Marking chains break where every line is hard to follow at once (a tight curve, an occlusion by
+    a truck): the paper's global lookup then finds no neighbour beside both pieces and the boundary
+    would jump between two fits. Only lines fitted over more than `probe` stations take part (dots,
+    posts and single dashes are the global lookup's business). b continues a when b starts at most
+    `gap_max` stations after a ends (or overlaps it by at most `probe` stations, agreeing within
+    `tol` there) and both reach the same offset within `tol` at the middle of the gap: kept at their
+    offset to a line that is present across the whole gap (the nearest such neighbour), else each
+    extrapolated linearly from its last (first) `probe` stations; both run along the road there
+    (`_ALONG_SLOPE`: a ramp or a crossing line is no continuation in this frame). Pairs are taken
+    best first, one successor and one predecessor per line; chains follow.
+    """
+    n = len(t)
+    fin = np.isfinite(t)
+    rows = [b for b in range(n) if fin[b].sum() > probe]
+    span = {b: (int(np.flatnonzero(fin[b])[0]), int(np.flatnonzero(fin[b])[-1])) for b in rows}
+    pairs = []
+    for a in rows:
+        a0, ea = span[a]
+        for b in rows:
+            sb, b1 = span[b]
+            if b == a or sb <= a0 or b1 <= ea or sb - ea > gap_max or ea - sb > probe:
+                continue
+            if not (_along(t[a, max(ea - probe, a0) : ea + 1]) and _along(t[b, sb : min(sb + probe, b1) + 1])):
+                continue
+            if sb <= ea:
+                miss = float(np.max(np.abs(t[a, sb : ea + 1] - t[b, sb : ea + 1])))
+            else:
+                miss = _gap_mismatch(t, fin, a, b, ea, sb, probe, span)
+            if miss <= tol:
+                pairs.append((miss, a, b))
+    root = np.arange(n)
+    nxt: set[int] = set()
+    prev: set[int] = set()
+    for _, a, b in sorted(pairs):
+        if a in nxt or b in prev:
+            continue
+        nxt.add(a)
+        prev.add(b)
+        root[b] = a
+    for b in range(n):
+        r = b
+        while root[r] != r:
+            r = root[r]
+        root[b] = r
+    return root
+
+
+def _along(t_end: np.ndarray) -> bool:
+    """The piece of a line runs along the road: its offset changes by at most `_ALONG_SLOPE` per station."""
+    return len(t_end) < 2 or float(np.max(np.abs(np.diff(t_end)))) <= _ALONG_SLOPE
+
+
+def _gap_mismatch(t: np.ndarray, fin: np.ndarray, a: int, b: int, ea: int, sb: int, probe: int,
+                  span: dict[int, tuple[int, int]]) -> float:
+    """Offset difference of line a's end and line b's start across the gap ea..sb (see `_continuations`)."""
+    across = [c for c in span if c not in (a, b) and fin[c, ea : sb + 1].all()]
+    if across:
+        c = min(across, key=lambda c: abs(t[a, ea] - t[c, ea]))
+        return float(abs((t[a, ea] - t[c, ea]) - (t[b, sb] - t[c, sb])))
+    mid = 0.5 * (ea + sb)
+    ka = np.arange(ea - probe, ea + 1)
+    kb = np.arange(sb, sb + probe + 1)
+    if ka[0] < span[a][0] or kb[-1] > span[b][1]:
+        return float("inf")
+    fa, fb = np.polyfit(ka - ea, t[a, ka], 1), np.polyfit(kb - sb, t[b, kb], 1)
+    return float(abs(np.polyval(fa, mid - ea) - np.polyval(fb, mid - sb)))
+
+
+def _bridge_gaps(t: np.ndarray, observed: np.ndarray, gap: int, parallel_m: float) -> None:
+    """Across unobserved stretches longer than `gap` stations a line keeps its lane width to the
+    neighbour best observed there (interpolated between the ends), instead of a straight chord in
+    the frame, which bends wherever the frame does. Neighbours whose offset to the line changes
+    least across the gap (in steps of `parallel_m`) come first: one that diverges from the line
+    there (an exit lane's edge leaving where the edge line turns into a broken one) would carry
+    the bridge out with it."""
+    for b in range(len(t)):
+        fin = np.flatnonzero(np.isfinite(t[b]))
+        if len(fin) == 0:
+            continue
+        inner = np.zeros(t.shape[1], dtype=bool)
+        inner[fin[0] : fin[-1] + 1] = True
+        for g0, g1 in _runs(inner & ~observed[b]):
+            if g1 - g0 < gap or g0 == 0 or g1 >= t.shape[1]:
+                continue
+            best, best_key = None, None
+            for nb in range(len(t)):
+                if nb == b or not np.all(np.isfinite(t[nb, g0 - 1 : g1 + 1])):
+                    continue
+                drift = abs(float((t[b, g1] - t[nb, g1]) - (t[b, g0 - 1] - t[nb, g0 - 1])))
+                share = float(observed[nb, g0:g1].mean())
+                steps = int(drift / parallel_m) if math.isfinite(drift) else 0
+                key = (-steps, share, -abs(float(t[nb, g0] - t[b, g0])))
+                if share >= 0.25 and (best_key is None or key > best_key):
+                    best, best_key = nb, key
+            if best is None:
+                continue
+            w0, w1 = t[b, g0 - 1] - t[best, g0 - 1], t[b, g1] - t[best, g1]
+            f = (np.arange(g0, g1) - (g0 - 1)) / (g1 - g0 + 1)
+            t[b, g0:g1] = t[best, g0:g1] + w0 + (w1 - w0) * f
+
+
+@dataclass
+class _Observed:
+    """Marking points counted per block of stations and lateral bin: where the sensor saw paint
+    (a bin counts with `least` points or more, so one stray return does not)."""
+
+    counts: np.ndarray  # (blocks, bins) every point
+    free: np.ndarray  # (blocks, bins) points not on a line that crosses the road there
+    t0: float
+    bin_m: float
+    block: int
+
+    def near(self, k: np.ndarray, t: np.ndarray, least: int = 3) -> np.ndarray:
+        """At stations k: paint was seen within about `bin_m` of offset t (False where t is NaN): a
+        line there, only not fitted; paint of a line crossing the road there is no such evidence."""
+        blocks = np.minimum(k // self.block, len(self.counts) - 1)
+        ok = np.isfinite(t)
+        col = np.floor((np.where(ok, t, self.t0) - self.t0) / self.bin_m).astype(np.int64)
+        n_bins = self.counts.shape[1]
+        out = np.zeros(len(k), dtype=bool)
+        for d in (-1, 0, 1):
+            out |= self.free[blocks, np.clip(col + d, 0, n_bins - 1)] >= least
+        return out & ok
+
+    def beyond(self, k: np.ndarray, t: np.ndarray, side: float, least: int = 3) -> np.ndarray:
+        """At stations k: paint was seen more than 1 m beyond offset t (`side`: +1 left, -1 right)."""
+        blocks = np.minimum(k // self.block, len(self.counts) - 1)
+        ok = np.isfinite(t)
+        col = np.floor((np.where(ok, t, self.t0) - self.t0) / self.bin_m).astype(np.int64)
+        n_bins = self.counts.shape[1]
+        edge = col + int(side * np.ceil(1.0 / self.bin_m))
+        cum = np.cumsum(self.counts >= least, axis=1)
+        if side > 0:
+            out = cum[blocks, -1] - cum[blocks, np.clip(edge, 0, n_bins - 1)] > 0
+        else:
+            out = (cum[blocks, np.clip(edge - 1, 0, n_bins - 1)] > 0) & (edge > 0)
+        return out & ok
+
+
+def _crossing_points(t_fit: np.ndarray, label: np.ndarray, k: np.ndarray, t: np.ndarray, tol: float) -> np.ndarray:
+    """Points on a fitted line that runs across the road there (offset changing by more than
+    `_ALONG_SLOPE` per station: a ramp, a crossing line), not along it."""
+    slope = np.abs(np.gradient(t_fit, axis=1)) if t_fit.shape[1] > 1 else np.zeros_like(t_fit)
+    row = np.maximum(label, 0)
+    with np.errstate(invalid="ignore"):
+        return (label >= 0) & (np.abs(t - t_fit[row, k]) <= tol) & (slope[row, k] > _ALONG_SLOPE)
+
+
+def _observed(k: np.ndarray, t: np.ndarray, free: np.ndarray, m: int, block: int = 10,
+              bin_m: float = 0.5) -> _Observed:
+    """Counts of marking points (all, and those with `free` set) per `block` stations and `bin_m` of offset."""
+    n_blocks = max((m + block - 1) // block, 1)
+    if len(k) == 0:
+        empty = np.zeros((n_blocks, 1), dtype=np.int64)
+        return _Observed(empty, empty.copy(), 0.0, bin_m, block)
+    t0 = float(np.floor(t.min()))
+    n_bins = int(np.ceil((t.max() - t0) / bin_m)) + 1
+    cell = (np.minimum(k // block, n_blocks - 1), ((t - t0) / bin_m).astype(np.int64))
+    counts = np.zeros((n_blocks, n_bins), dtype=np.int64)
+    np.add.at(counts, cell, 1)
+    loose = np.zeros((n_blocks, n_bins), dtype=np.int64)
+    np.add.at(loose, (cell[0][free], cell[1][free]), 1)
+    return _Observed(counts, loose, t0, bin_m, block)
