@@ -97,7 +97,7 @@ def test_reframe_moves_the_start_and_keeps_the_boundaries_in_the_world() -> None
 
 def test_network_file_round_trip_and_single_road_files(tmp_path) -> None:
     a, b = slice_model(_road(), 0, 150), slice_model(_road(), 150, 300, drop={2})
-    net = RoadNetwork([a, b], [RoadLink(0, 1, [(0, 0)], True)], ["w"])
+    net = RoadNetwork([a, b], [RoadLink(0, 1, [(0, 0)], True, open_in=[1])], ["w"])
     path = tmp_path / "lanes.json"
     save_network(net, path)
     back = load_network(path)
@@ -115,6 +115,18 @@ def test_no_event_leaves_the_road_whole() -> None:
     road = _road()
     net = build_network(None, road, cfg.lanes, cfg.markings)  # type: ignore[arg-type]
     assert net.roads == [road] and net.links == []
+
+
+def test_a_lane_into_a_branch_that_was_not_built_is_open_at_the_junction() -> None:
+    """Where the diverging lane's branch cannot be built (no markings beside the road here), the lane
+    still goes on into it: the continuation link names it in `open_in`, so the exporter ends it at
+    its measured width instead of closing it to 0 before the junction."""
+    cfg = Config()
+    road = _road(widen_from=150.0)
+    net = build_network(_cloud(np.zeros((0, 2))), road, cfg.lanes, cfg.markings)
+    assert len(net.roads) == 2 and len(net.links) == 1
+    assert net.links[0].continuation and net.links[0].open_in == [1]
+    assert any("measured width" in w for w in net.warnings)
 
 
 def _cloud(xy: np.ndarray) -> MarkingCloud:

@@ -236,6 +236,21 @@ def test_lane_into_the_branch_ends_at_full_width_and_new_lanes_start_at_zero(wri
     assert ls.lanes[-1].width(np.array([a2.length - ls.s]))[0] == pytest.approx(LANE, abs=0.02)
 
 
+def test_a_lane_into_a_branch_that_was_not_built_ends_at_full_width(written) -> None:
+    """A lane that leaves into a branch seen too little to be built (the link's `open_in`) goes on
+    there: it ends at its measured width, not in a taper to 0 (on highway_split the drive followed one
+    branch, and the lane of the other closed over the last 50 m before the junction)."""
+    _, _, path, _ = written["diverge"]
+    one_lane = _diverge()[0]
+    one_lane.links = [RoadLink(0, 1, [(0, 0)], continuation=True, open_in=[1])]
+    path2 = path.parent / "open.xodr"
+    export_network(one_lane, None, ExportConfig(), path2, _direct=True)
+    a2 = OpenDriveMap.load(path2).roads["1"]
+    ls = a2.lane_sections[-1]
+    assert ls.lanes[-2].width(np.array([a2.length - ls.s]))[0] == pytest.approx(LANE, abs=0.02)
+    assert ls.lanes[-1].width(np.array([a2.length - ls.s]))[0] == pytest.approx(LANE, abs=0.02)
+
+
 def test_elevation_and_banking_meet_at_the_junction(written) -> None:
     _, _, path, _ = written["diverge"]
     odr = OpenDriveMap.load(path)

@@ -161,12 +161,16 @@ class RoadLink:
     outgoing road's first section. `continuation`: the outgoing road is the same carriageway as the
     incoming one (a split of one measured road, its reference line goes on exactly); otherwise one
     of the two is a branch that diverges from (or a ramp that merges into) the other.
+    `open_in`: lanes of the incoming road's last section that leave to a road that was not built (a
+    branch seen too little to measure): they end at their measured width there, as a lane linked
+    into a branch does, instead of closing to width 0.
     """
 
     incoming: int  # index into RoadNetwork.roads
     outgoing: int
     lanes: list[tuple[int, int]]
     continuation: bool = True
+    open_in: list[int] = field(default_factory=list)
 
 
 @dataclass

@@ -1607,7 +1607,7 @@ def export_network(network: RoadNetwork, planes: GroundPlanes | None, cfg: Expor
     joins, order = _plan_joins(network)
     linked: dict[tuple[int, bool], set[int]] = {}
     for link in network.links:
-        linked.setdefault((link.incoming, True), set()).update(int(i) for i, _ in link.lanes)
+        linked.setdefault((link.incoming, True), set()).update([int(i) for i, _ in link.lanes] + link.open_in)
         linked.setdefault((link.outgoing, False), set()).update(int(j) for _, j in link.lanes)
 
     built: dict[int, _Built] = {}
