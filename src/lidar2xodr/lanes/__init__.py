@@ -1,5 +1,12 @@
 """Lanes from markings alone (paper Alg. 2): relative lookups, superlines, boundaries, sections.
 
+The stage in the order it runs (`build.build_lane_model`): `lookups` (candidates -> relative and
+global lookups -> superlines), `frame` (the station frame along the road), `tracks` (every line as
+a fitted t(s), double lines folded, where it was seen, lines joined across gaps), `labels` (marking
+points to lines), `structure` (the carriageway's lines at every station, tapers followed), `tapers`
+(entry and exit lanes), `dividers` (directions on a paint-only two-way road), `sections`, `marks`
+(dash pattern, painted width); `lanes_json` writes and reads the result.
+
 Method and the decisions the paper leaves open (parameters in `LanesConfig`):
 - Relative lookups (paper): in 2D, the left and right normals at the middle of every segment
   between consecutive centres of a candidate are intersected with the segments of all other
