@@ -68,6 +68,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from lidar2xodr.angles import wrap_angle
 from lidar2xodr.config import CheckConfig
 from lidar2xodr.errors import InputError
 from lidar2xodr.fileio import temp_dir
@@ -229,10 +230,6 @@ def _arc_length(geom: Any) -> float:
     return (4.0 * fine - coarse) / 3.0
 
 
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
 def _contact_s(road: Any, junction_id: str, contact: str | None) -> float | None:
     """Station of the road end that touches the junction (the contact point when given)."""
     if contact in ("start", "end"):
@@ -332,7 +329,7 @@ def continuity(odr: Any) -> dict[str, Any]:
             ex, ey, eh = (float(v[0]) for v in geom.eval(geom.length))
             sx, sy, sh = (float(v[0]) for v in nxt.eval(0.0))
             leap = math.hypot(sx - ex, sy - ey)
-            kink = abs(_wrap(sh - eh))
+            kink = abs(wrap_angle(sh - eh))
             note("leap", leap, road_id, i, nxt.s)
             note("kink", kink, road_id, i, nxt.s)
             road_bad |= leap > LEAP_LIMIT_M or kink > KINK_LIMIT_RAD

@@ -95,6 +95,7 @@ from rich.console import Console
 from rich.table import Table
 from scipy.spatial import cKDTree
 
+from lidar2xodr.angles import wrap_angle
 from lidar2xodr.config import EvaluationConfig, FusionConfig
 from lidar2xodr.errors import InputError
 from lidar2xodr.lane_graph import lane_graph_agreement
@@ -170,10 +171,6 @@ def _cat(parts: list[np.ndarray], empty_shape: tuple[int, ...]) -> np.ndarray:
     return np.concatenate(parts) if parts else np.zeros(empty_shape)
 
 
-def _wrap(a: np.ndarray) -> np.ndarray:
-    return (a + np.pi) % (2.0 * np.pi) - np.pi
-
-
 def _runs(ids: list[int], types: dict[int, str]) -> list[list[int]]:
     """Maximal runs of adjacent driving lanes among `ids` (ordered inner to outer)."""
     runs: list[list[int]] = []
@@ -218,7 +215,7 @@ def _side_by_side(inner: _Piece, outer: _Piece, tol: float) -> bool:
     d, idx = cKDTree(_dense(inner.borders[-1])).query(outer.borders[0])
     idx = np.minimum(idx // _DENSE, len(inner.travel) - 1)
     back, _ = cKDTree(_dense(outer.borders[0])).query(inner.borders[-1])
-    same_way = np.abs(_wrap(outer.travel - inner.travel[idx])) < np.radians(JUNCTION_BUNDLE_HEADING_DEG)
+    same_way = np.abs(wrap_angle(outer.travel - inner.travel[idx])) < np.radians(JUNCTION_BUNDLE_HEADING_DEG)
     return bool(np.mean((d <= tol) & same_way) >= JUNCTION_BUNDLE_SHARE
                 and np.mean(back <= tol) >= JUNCTION_BUNDLE_SHARE)
 
@@ -261,7 +258,7 @@ def carriageways(odr: Any, step: float, transform: Any = None) -> Carriageways:
             border_xy, hdg = transform(border_xy, sec.xyz[:, :2], hdg)
         for side in (1, -1):
             along = (side == -1) == (str(rule).upper() != "LHT")
-            travel = hdg if along else _wrap(hdg + np.pi)
+            travel = hdg if along else wrap_angle(hdg + np.pi)
             ids = sorted((i for i in sec.lane_ids if i * side > 0), key=abs)
             for run in _runs(ids, sec.lane_types):
                 border_ids = [run[0] - side, *run]
@@ -361,7 +358,7 @@ def nearest(lines: Lines, q: np.ndarray, q_hdg: np.ndarray, tol_rad: float
     beyond = np.zeros(len(q), bool)
     trees: dict[bytes, tuple[np.ndarray, cKDTree]] = {}
     for b in np.unique(q_bin):
-        agree = np.abs(_wrap(lines.hdg - (b + 0.5) * bin_rad)) <= tol_rad
+        agree = np.abs(wrap_angle(lines.hdg - (b + 0.5) * bin_rad)) <= tol_rad
         if not agree.any():
             agree = np.ones(len(lines.hdg), bool)
         key = np.packbits(agree).tobytes()
@@ -481,7 +478,7 @@ def _rigid_alignment(gen: Carriageways, ref: Carriageways, transform: Any, align
               ) -> tuple[dict[int, np.ndarray], np.ndarray]:
         if transform is not None:
             border_xy, hdg = transform(border_xy, ref_xy, hdg)
-        return {k: v @ rot.T + shift for k, v in border_xy.items()}, _wrap(hdg + yaw)
+        return {k: v @ rot.T + shift for k, v in border_xy.items()}, wrap_angle(hdg + yaw)
 
     return apply, {"dx_m": float(shift[0]), "dy_m": float(shift[1]), "yaw_deg": math.degrees(yaw),
                    "inlier_share": share}

@@ -147,6 +147,7 @@ from scipy.interpolate import BSpline, PPoly
 from scipy.ndimage import median_filter
 from scipy.spatial import cKDTree
 
+from lidar2xodr.angles import wrap_angle
 from lidar2xodr.config import ExportConfig
 from lidar2xodr.data import MARK_TYPES, TAPER_LANE_TYPES, Boundary, GroundPlanes, LaneModel, RoadLink, RoadNetwork
 from lidar2xodr.errors import InputError
@@ -260,10 +261,6 @@ def _local_end(u: np.ndarray, v: np.ndarray, x: float, y: float, h: float) -> tu
     return x + c * eu - s * ev, y + s * eu + c * ev, h + math.atan2(dv, du)
 
 
-def _wrap(a: float) -> float:
-    return float((a + math.pi) % (2 * math.pi) - math.pi)
-
-
 def _hermite(p: np.ndarray) -> np.ndarray:
     """Cubic Hermite basis (h00, h10, h01, h11) at p, shape (m, 4)."""
     p2, p3 = p * p, p * p * p
@@ -347,7 +344,7 @@ def _fit_plan(s: np.ndarray, xy: np.ndarray, breaks: np.ndarray, cfg: ExportConf
         c1 = span * tan[k]
         c2 = -3 * pos[k] - 2 * span * tan[k] + 3 * pos[k + 1] - span * tan[k + 1]
         c3 = 2 * pos[k] + span * tan[k] - 2 * pos[k + 1] + span * tan[k + 1]
-        x0, y0, hdg = start[0], start[1], _wrap(start[2])
+        x0, y0, hdg = start[0], start[1], float(wrap_angle(start[2]))
         ch, sh = math.cos(hdg), math.sin(hdg)
         u = np.array([0.0, float(np.hypot(*c1)), ch * c2[0] + sh * c2[1], ch * c3[0] + sh * c3[1]])
         v = np.array([0.0, 0.0, -sh * c2[0] + ch * c2[1], -sh * c3[0] + ch * c3[1]])
@@ -887,7 +884,7 @@ def _measure(data: bytes, joins: list[tuple[str, str]]) -> tuple[float, float, f
                 first[road.get("id")] = start
             else:
                 leap = max(leap, math.hypot(start[0] - prev_end[0], start[1] - prev_end[1]))
-                kink = max(kink, abs(_wrap(start[2] - prev_end[2])))
+                kink = max(kink, abs(float(wrap_angle(start[2] - prev_end[2]))))
             prev_end = _local_end(u, v, x, y, h)
             speed = np.hypot(u[1] + 2 * u[2] * pgl + 3 * u[3] * pgl**2, v[1] + 2 * v[2] * pgl + 3 * v[3] * pgl**2)
             lerr = max(lerr, abs(0.5 * float(speed @ ws) - length))
@@ -896,7 +893,7 @@ def _measure(data: bytes, joins: list[tuple[str, str]]) -> tuple[float, float, f
     for a, b in joins:
         end, start = last[a], first[b]
         leap = max(leap, math.hypot(start[0] - end[0], start[1] - end[1]))
-        kink = max(kink, abs(_wrap(start[2] - end[2])))
+        kink = max(kink, abs(float(wrap_angle(start[2] - end[2]))))
     return leap, kink, lerr
 
 
@@ -1013,7 +1010,7 @@ def _blend(grid: np.ndarray, ref: np.ndarray, left: np.ndarray, t_grid: dict[int
     pivot = ref[e, :2] + t_mid * left[e]
     dist = grid[-1] - grid if at_end else grid - grid[0]
     fade = 1.0 - _smoothstep(dist / min(cfg.junction_blend_m, grid[-1] - grid[0]))
-    theta = _wrap(anchor.pose[2] - _end_heading(grid, ref[:, :2], at_end)) * fade
+    theta = float(wrap_angle(anchor.pose[2] - _end_heading(grid, ref[:, :2], at_end))) * fade
     c, s = np.cos(theta), np.sin(theta)
 
     def turn(v: np.ndarray) -> np.ndarray:
@@ -1306,7 +1303,7 @@ def _split_piece(geom: etree._Element, ds: float) -> tuple[etree._Element, etree
     rows = [(u * scale, v * scale, x, y, h),
             (np.r_[0.0, ct * tu[1:] + st * tv[1:]], np.r_[0.0, 0.0, -st * tu[2:] + ct * tv[2:]],
              x + math.cos(h) * tu[0] - math.sin(h) * tv[0], y + math.sin(h) * tu[0] + math.cos(h) * tv[0],
-             _wrap(h + turn))]
+             float(wrap_angle(h + turn)))]
     pieces = []
     for cu, cv, px, py, ph in rows:
         piece = copy.deepcopy(geom)
@@ -1682,3 +1679,4 @@ def export_network(network: RoadNetwork, planes: GroundPlanes | None, cfg: Expor
 def export_opendrive(model: LaneModel, planes: GroundPlanes | None, cfg: ExportConfig, path: Path) -> ExportSummary:
     """Write `model` as one OpenDRIVE road to `path` (atomically) and return what was measured."""
     return export_network(RoadNetwork([model]), planes, cfg, path)
+

@@ -53,6 +53,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from lidar2xodr.angles import wrap_angle
 from lidar2xodr.config import EvaluationConfig
 
 NodeKey = tuple[str, int, int]  # road id, lane section index, lane id
@@ -65,10 +66,6 @@ _MAX_BREAKS_LISTED = 20
 _GHOST_WIDTH_M = 0.01
 """Narrower everywhere in its section: a zero-width placeholder lane, not a lane (chain_distances)."""
 _CHUNK = 20_000
-
-
-def _wrap(a: np.ndarray) -> np.ndarray:
-    return (a + np.pi) % (2.0 * np.pi) - np.pi
 
 
 def travels_along_s(lane_id: int, rule: str) -> bool:
@@ -269,7 +266,7 @@ def _cells(sections: list[Any], odr: Any, graph: LaneGraph, cfg: EvaluationConfi
             full = ((width >= cfg.lane_graph_min_width_m) | (start_d[node] + s_in <= cfg.lane_graph_taper_m)
                     | (end_d[node] + s_out <= cfg.lane_graph_taper_m))
             corners = np.stack([inner[:-1], inner[1:], outer[1:], outer[:-1]], axis=1)
-            travel = hdg[:-1] if along else _wrap(hdg[:-1] + np.pi)
+            travel = hdg[:-1] if along else wrap_angle(hdg[:-1] + np.pi)
             parts.append((corners, np.full(len(corners), node), travel, full[:-1] & full[1:]))
     if not parts:
         return _Cells(np.zeros((0, 4, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0, int), np.zeros(0),
@@ -324,7 +321,7 @@ def holding_lanes(cells: _Cells, q: np.ndarray, q_hdg: np.ndarray, tol_rad: floa
                 dist, idx = tree.query(q[rows], k=k)
                 dist, idx = np.asarray(dist).reshape(len(rows), k), sub[np.asarray(idx).reshape(len(rows), k)]
                 hit = (_inside(cells.corners[idx], q[rows])
-                       & (np.abs(_wrap(cells.hdg[idx] - q_hdg[rows, None])) <= tol_rad))
+                       & (np.abs(wrap_angle(cells.hdg[idx] - q_hdg[rows, None])) <= tol_rad))
                 code = np.where(hit, cells.node[idx] * 2 + cells.full[idx], -1)
                 out[rows] = _unique_codes(np.concatenate([out[rows], code], axis=1), _MAX_CANDIDATES)
                 unsure[a:a + step] = dist[:, -1] <= r_max
@@ -370,7 +367,7 @@ def _reference_samples(sections: list[Any], odr: Any, graph: LaneGraph) -> tuple
             lw = np.abs(sec.border_t[lid] - sec.border_t[lid - sgn])
             h, ss = sec.hdg, sec.s
             if not travels_along_s(lid, rule):
-                centre, lw, h, ss = centre[::-1], lw[::-1], _wrap(h[::-1] + np.pi), ss[::-1]
+                centre, lw, h, ss = centre[::-1], lw[::-1], wrap_angle(h[::-1] + np.pi), ss[::-1]
             seg = np.hypot(*np.diff(centre, axis=0).T) if len(centre) > 1 else np.zeros(0)
             xy.append(centre)
             hdg.append(h)

@@ -33,6 +33,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from lidar2xodr.angles import wrap_angle
 from lidar2xodr.config import ExtractionConfig
 from lidar2xodr.data import Trajectory
 
@@ -233,10 +234,6 @@ def align_to_truth(est: Trajectory, truth: Trajectory) -> tuple[np.ndarray, np.n
     return rigid_fit_2d(est.positions[:, :2], true_xy)
 
 
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
 def _yaw(poses: np.ndarray) -> np.ndarray:
     return np.unwrap(np.arctan2(poses[:, 1, 0], poses[:, 0, 0]))
 
@@ -286,6 +283,6 @@ def trajectory_errors(est: Trajectory, truth: Trajectory, segment_m: float = 100
         "segment_m": segment_m,
         "segment_mean_m": float(seg.mean()) if len(seg) else float("nan"),
         "segment_max_m": float(seg.max()) if len(seg) else float("nan"),
-        "heading_end_deg": math.degrees(_wrap((yaw[-1] - yaw[0]) - (true_yaw[-1] - true_yaw[0]))),
+        "heading_end_deg": math.degrees(wrap_angle((yaw[-1] - yaw[0]) - (true_yaw[-1] - true_yaw[0]))),
         "height_end_m": float(est_up[-1] - true_up[-1]),
     }

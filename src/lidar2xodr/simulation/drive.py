@@ -14,6 +14,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
+from lidar2xodr.angles import wrap_angle
 from lidar2xodr.errors import InputError
 from lidar2xodr.fileio import atomic_dir
 from lidar2xodr.opendrive import OpenDriveMap
@@ -212,18 +213,14 @@ def _objects(traffic: TrafficPoses, agents: Agents, n: int, t_mid: float, hits: 
         ln, wd, ht = agents.size[c]
         cls = agents.cls[c]
         x, y, z = centre[j]
-        truth.append((t_mid, c, cls, x, y, z, _wrap(yaw[j]), ln, wd, ht, vel[j, 0], vel[j, 1]))
+        truth.append((t_mid, c, cls, x, y, z, wrap_angle(yaw[j]), ln, wd, ht, vel[j, 0], vel[j, 1]))
         if hits[c] >= 3:
             seen.add(c)
             e = rng.normal(0.0, 1.0, 9)
             reported.append((t_mid, c, cls, x + 0.08 * e[0], y + 0.08 * e[1], z + 0.05 * e[2],
-                             _wrap(yaw[j] + 0.02 * e[3]), ln + 0.05 * e[4], wd + 0.05 * e[5], ht + 0.05 * e[6],
+                             wrap_angle(yaw[j] + 0.02 * e[3]), ln + 0.05 * e[4], wd + 0.05 * e[5], ht + 0.05 * e[6],
                              vel[j, 0] + 0.2 * e[7], vel[j, 1] + 0.2 * e[8]))
     return reported, truth
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
 
 
 def _rot_from_rpy(a: np.ndarray) -> np.ndarray:
