@@ -64,6 +64,11 @@ sweep: setup
 	$(BIN)/python bench/sweep.py --jobs $(JOBS)
 
 # issue #16: the paper's reproducibility protocol (four drives of one road, GNSS bias 0-2 m, three against the fourth)
+# issue #14: whole-build speed, memory and scaling, and the extraction side by side with Open3D
+.PHONY: bench-speed
+bench-speed: setup
+	$(BIN)/python bench/speed.py
+
 .PHONY: bench-repro
 bench-repro: setup
 	$(BIN)/python bench/reproducibility.py
