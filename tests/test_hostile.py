@@ -448,20 +448,33 @@ def _wait(cond: object, timeout: float) -> bool:
     return False
 
 
+def _is_sleeper(pid: int) -> bool:
+    """The stand-in checker (`sleep 601`), matched by its whole argv: "601" alone also occurs in PIDs
+    and paths on other children's command lines (an extraction pool worker taken for the checker)."""
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")[:2] == [b"sleep", b"601"]
+    except OSError:
+        return False
+
+
+def _as_in_a_terminal() -> None:
+    """Ctrl-C as a terminal delivers it: a suite started in the background (`cmd &` in a script) runs
+    with SIGINT ignored, which its children inherit, and a build that ignores SIGINT rightly goes on."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _build_until_checker(assets: dict[str, Path], out: Path) -> tuple[subprocess.Popen[str], set[int]]:
     """Start `build` in a subprocess and wait until the map checker (a child process) runs.
 
-    The checker is a stand-in that sleeps (601 s): the real one can finish between being seen and the
-    signal under a loaded machine, and the build with it (a CI run saw exit 0 after SIGINT)."""
+    The checker is a stand-in that sleeps (601 s), so the build is still in it when the signal comes."""
     venv = out.parent / "slow-qc"
     (venv / "bin").mkdir(parents=True, exist_ok=True)
     (venv / "bin" / "python").write_text("#!/bin/sh\nexec sleep 601\n")
     (venv / "bin" / "python").chmod(0o755)
     proc = subprocess.Popen([sys.executable, "-m", "lidar2xodr.cli", "build", str(assets["drive"]), "-o",
                              str(out / "map.xodr")], env={**_env(), "LIDAR2XODR_QC_VENV": str(venv)},
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    found = _wait(lambda: any("601" in Path(f"/proc/{k}/cmdline").read_text(errors="ignore")
-                              for k in _descendants(proc.pid) if Path(f"/proc/{k}/cmdline").exists()), 60)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_as_in_a_terminal)
+    found = _wait(lambda: any(_is_sleeper(k) for k in _descendants(proc.pid)), 60)
     if not found:
         proc.kill()
         pytest.fail(f"the build never started its checker: {proc.communicate()}")
@@ -519,8 +532,7 @@ def test_sigterm_during_a_slow_checker_ends_it_at_once(tmp_path: Path, assets: d
                             stderr=subprocess.PIPE, text=True)
 
     def sleeper() -> set[int]:
-        return {k for k in _descendants(proc.pid)
-                if "601" in Path(f"/proc/{k}/cmdline").read_text(errors="ignore")}
+        return {k for k in _descendants(proc.pid) if _is_sleeper(k)}
 
     try:
         if not _wait(lambda: bool(sleeper()), 60):
