@@ -112,9 +112,9 @@ def _fold_double_lines(k: np.ndarray, t: np.ndarray, n: int, lam: float, double:
     the points' offsets from a smooth trend through all of them are split into two clusters; blocks
     whose two clusters are resolved (`_two_modes`) and at most `double[0]` apart, in runs of three
     blocks or more with the same spacing (within `_DOUBLE_SPACING_SPREAD_M`: the two lines of a
-    taper or a gore converge or spread),
-    move each cluster by half the spacing onto the midpoint. Other points are returned unchanged.
-    Returns the offsets and which points lie in a double line's blocks.
+    taper or a gore converge or spread), move each cluster by half the spacing onto the midpoint.
+    Other points are returned unchanged. Returns the offsets and which points lie in a double line's
+    blocks.
     """
     max_spacing, block = double
     folded = np.zeros(len(t), dtype=bool)
