@@ -567,6 +567,43 @@ def test_a_sigterm_that_surfaces_as_another_error_is_still_a_clean_143() -> None
     assert stop.value.exit_code == 143
 
 
+def test_a_sigterm_lost_in_a_finaliser_still_ends_the_wait_for_a_child(monkeypatch: pytest.MonkeyPatch) -> None:
+    """CI: the SIGTERM landed in a finaliser ("Exception ignored in ... Terminated"), its raise was lost, and
+    `check` went on waiting for its checker thread (600 s). The signal itself must end the wait."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import typer
+
+    from lidar2xodr import lifetime
+    from lidar2xodr.cli import _clean_errors
+
+    unraisable: list[object] = []
+    monkeypatch.setattr(sys, "unraisablehook", unraisable.append)
+
+    class SignalledWhenCollected:
+        def __del__(self) -> None:
+            os.kill(os.getpid(), signal.SIGTERM)
+            for _ in range(100_000):  # the handler runs in here, where Python can only print what it raises
+                pass
+
+    def command() -> object:
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            job = pool.submit(lifetime.run_child, ["sleep", "601"], timeout=900)
+            try:
+                assert _wait(lambda: bool(lifetime._CHILDREN), 30), "the child never started"
+                SignalledWhenCollected()
+                return job.result(timeout=20)
+            finally:
+                lifetime.kill_children()
+
+    started = time.monotonic()
+    with pytest.raises(typer.Exit) as stop:
+        _clean_errors(command)()
+    assert stop.value.exit_code == 143
+    assert time.monotonic() - started < 15
+    assert unraisable == [], "the lost interrupt was printed"
+
+
 def test_a_child_started_after_the_interrupt_is_killed_at_once() -> None:
     """A thread that runs two children in a row must not start the second one unkilled after the
     interrupt killed the first (netconvert `--version`, then the conversion: CI waited 30 s for it)."""

@@ -139,13 +139,15 @@ def _environment_problem(exc: OSError) -> str:
 
 def _clean_errors(fn: F) -> F:
     """Turn expected failures into one line and exit code 2; SIGTERM and Ctrl-C into 143 and 130."""
-    from lidar2xodr.lifetime import Terminated, terminate_as_interrupt, terminated
+    from lidar2xodr.lifetime import Terminated, raise_if_signalled, terminate_as_interrupt, terminated
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
             with terminate_as_interrupt(), _warnings_as_one_line():
-                return fn(*args, **kwargs)
+                result = fn(*args, **kwargs)
+                raise_if_signalled()  # a signal whose raise was lost (in a finaliser) still ends the command as one
+                return result
         except (InputError, OutputError) as exc:
             _say("[bold red]error:[/]", exc)
             raise typer.Exit(2) from None

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from lidar2xodr.errors import OutputError
+from lidar2xodr.lifetime import raise_if_signalled
 
 
 def _umask() -> int:
@@ -214,6 +215,7 @@ def staged_outputs() -> Iterator[None]:
     token = _CURRENT.set(staged_set)
     try:
         yield
+        raise_if_signalled()
     except BaseException:
         for tmp, _, _ in staged_set.moves:
             _remove(tmp)
@@ -286,6 +288,7 @@ def atomic_path(target: str | Path, suffix: str | None = None) -> Iterator[Path]
             raise OutputError(target, f"cannot write: {os_problem(exc)}") from None
         if not tmp_path.is_file():
             raise OutputError(target, "nothing was written")
+        raise_if_signalled()
         if staged_set is not None:
             staged_set.moves.append((tmp_path, target, None))
             keep = True
@@ -369,6 +372,7 @@ def atomic_dir(target: str | Path, kind: str = "report") -> Iterator[Path]:
             yield tmp
         except OSError as exc:
             raise OutputError(target, f"cannot write: {os_problem(exc)}") from None
+        raise_if_signalled()
         if staged_set is not None:
             staged_set.moves.append((tmp, target, kind))
             keep = True

@@ -17,10 +17,12 @@ import functools
 import os
 import signal
 import subprocess
+import sys
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Executor
 from types import FrameType
+from typing import Any
 
 _PR_SET_PDEATHSIG = 1
 try:
@@ -34,32 +36,71 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM arrived: handled like Ctrl-C, reported with exit code 143 (128 + SIGTERM)."""
 
 
-_TERMINATED = [False]  # a SIGTERM arrived in the current `terminate_as_interrupt` block
+_SIGNALLED: list[int | None] = [None]  # the SIGTERM/SIGINT that arrived in the current `terminate_as_interrupt` block
+_RECEIVED: list[int | None] = [None]  # the one that arrived in the latest block, kept after it
 
 
-def _raise_terminated(signum: int, frame: FrameType | None) -> None:
-    _TERMINATED[0] = True
-    raise Terminated()
+def _interrupt(signum: int) -> KeyboardInterrupt:
+    return Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
+
+
+def _on_signal(signum: int, frame: FrameType | None) -> None:
+    """Record the signal, kill our children, raise the interrupt.
+
+    The raise alone is not enough: when the signal lands in a finaliser or weakref callback, Python
+    prints "Exception ignored" and goes on, and a main thread waiting for a checker thread would
+    wait for it up to its timeout (a CI run saw `check` ignore a SIGTERM this way). The record and
+    the killed children make the waiting thread raise instead (`raise_if_signalled`).
+    """
+    _SIGNALLED[0] = _RECEIVED[0] = signum
+    kill_children()
+    raise _interrupt(signum)
 
 
 def terminated() -> bool:
     """Whether a SIGTERM arrived: the `Terminated` it raised can come out as another error (a C
     extension being imported at that moment reports "ImportError: initialization failed")."""
-    return _TERMINATED[0]
+    return _RECEIVED[0] == signal.SIGTERM
+
+
+def raise_if_signalled() -> None:
+    """Raise the interrupt of a SIGTERM/SIGINT that arrived in this block, also where its own raise was lost.
+
+    Called where work resumes after waiting for a child, and before an output is moved into place.
+    """
+    if _SIGNALLED[0] is not None:
+        raise _interrupt(_SIGNALLED[0])
+
+
+def _quiet_interrupts(previous: Callable[[Any], object]) -> Callable[[Any], None]:
+    """An unraisable hook that drops our own lost interrupts (they are recorded) and passes on the rest."""
+    def hook(unraisable: Any) -> None:
+        if isinstance(unraisable.exc_value, KeyboardInterrupt) and _SIGNALLED[0] is not None:
+            return
+        previous(unraisable)
+    return hook
 
 
 @contextlib.contextmanager
 def terminate_as_interrupt() -> Iterator[None]:
-    """Within the block, SIGTERM raises `Terminated` in the main thread (elsewhere: no change)."""
+    """Within the block, SIGTERM raises `Terminated` and SIGINT `KeyboardInterrupt` in the main thread, and
+    both kill the children of `run_child` (elsewhere: no change; an ignored SIGINT stays ignored)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    _TERMINATED[0] = False
-    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    _SIGNALLED[0] = _RECEIVED[0] = None
+    previous = {signal.SIGTERM: signal.signal(signal.SIGTERM, _on_signal)}
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        previous[signal.SIGINT] = signal.signal(signal.SIGINT, _on_signal)
+    hook = sys.unraisablehook
+    sys.unraisablehook = _quiet_interrupts(hook)
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        sys.unraisablehook = hook
+        _SIGNALLED[0] = None
 
 
 def die_with_parent(parent_pid: int | None = None) -> None:
@@ -81,7 +122,7 @@ def child_preexec() -> functools.partial[None]:
 
 
 _CHILDREN: set[subprocess.Popen[str]] = set()
-_CHILDREN_LOCK = threading.Lock()
+_CHILDREN_LOCK = threading.RLock()  # re-entered by the signal handler in the main thread
 _STOPPING = [0]  # > 0 while a block of `children_killed_on_exit` is being left by an exception
 
 
@@ -97,7 +138,7 @@ def run_child(cmd: Sequence[str], *, timeout: float, env: dict[str, str] | None 
                           preexec_fn=child_preexec()) as proc:
         with _CHILDREN_LOCK:
             _CHILDREN.add(proc)
-            if _STOPPING[0]:
+            if _STOPPING[0] or _SIGNALLED[0] is not None:
                 proc.kill()
         try:
             out, err = proc.communicate(timeout=timeout)
@@ -108,6 +149,7 @@ def run_child(cmd: Sequence[str], *, timeout: float, env: dict[str, str] | None 
         finally:
             with _CHILDREN_LOCK:
                 _CHILDREN.discard(proc)
+    raise_if_signalled()
     return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
 
 
