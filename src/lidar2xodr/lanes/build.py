@@ -9,7 +9,6 @@ from lidar2xodr.data import Boundary, Candidate, LaneModel, MarkingCloud
 from lidar2xodr.errors import InputError
 from lidar2xodr.lanes.dividers import _divided_left, _ego_offsets, _ego_track, _mark_dividers
 from lidar2xodr.lanes.frame import (
-    _LINE_EXT_M,
     _LINE_FRAME_GAIN,
     Frame,
     _first_frame,
@@ -65,28 +64,13 @@ def build_lane_model(
             frames.insert(0, along_line)
         else:
             frames.append(along_line)
-    built: LaneModel | None = None
-    for frame in frames:
+    for attempt, frame in enumerate(frames):
         try:
-            model = _build_on_frame(cloud, candidates, cfg, where, xyz, pieces, owner, superline, frame, step, w_lane)
+            return _build_on_frame(cloud, candidates, cfg, where, xyz, pieces, owner, superline, frame, step, w_lane)
         except _NoRoad:
-            continue
-        if built is None or _road_m(model) > _road_m(built) + cfg.min_section_length_m:
-            built = model
-        span = 0.0 if along_line is None else along_line.length - 2 * _LINE_EXT_M
-        if frame is along_line or _road_m(built) >= _LINE_SPAN_SHARE * span:
-            break
-    if built is None:
-        raise InputError(where, "no stretch of road has two marking lines a lane apart")
-    return built
-
-
-def _road_m(model: LaneModel) -> float:
-    """Metres of road a lane model explains (two lines a lane apart: every station of the model)."""
-    return float(model.s[-1] - model.s[0]) if len(model.s) else 0.0
-
-
-_LINE_SPAN_SHARE = 0.9  # a road this much of the longest line's span needs no second axis
+            if attempt == len(frames) - 1:
+                raise InputError(where, "no stretch of road has two marking lines a lane apart") from None
+    raise AssertionError("unreachable")
 
 
 class _NoRoad(Exception):
