@@ -531,23 +531,3 @@ def test_the_direct_form_is_valid_but_no_reader_here_loads_it(written) -> None:
             assert all(re.search("connectingRoad' is missing", ln) for ln in sumo["errors"]), sumo["errors"]
         if carla["available"]:
             assert not carla["ok"] and carla["errors"] == ["IndexError: _Map_base::at"], carla
-
-
-def test_a_branch_that_curves_soon_after_the_junction_is_not_turned_by_the_blend() -> None:
-    """highway_split s1: the branch leaves straight and curves from 6 m on, and its reference wobbles by 0.1 m
-    (both split lines' paint at the gore). Its heading at the junction is its linked lanes' middle over the
-    first metres; a quadratic of the reference over 20 m read 0.06 rad there and the blend turned the branch
-    0.6 m off its markings."""
-    from lidar2xodr.export_opendrive import _Anchor, _blend
-
-    grid = np.arange(0.0, 58.0, 1.0)
-    bend = np.where(grid > 6.0, -0.004 * (grid - 6.0) ** 2, 0.0)
-    wobble = 0.1 * np.exp(-0.5 * ((grid - 8.0) / 2.0) ** 2)
-    ref = np.column_stack([grid, bend + wobble, np.zeros_like(grid)])
-    left = np.tile([0.0, 1.0], (len(grid), 1))
-    t_grid = {0: LANE / 2 - wobble, 1: -LANE / 2 - wobble}
-    anchor = _Anchor(pose=(0.0, 0.0, 0.0), z=0.0, dz=0.0, roll=0.0, lanes=None, blend=(0, 0))  # type: ignore[arg-type]
-    out, _ = _blend(grid, ref, left, t_grid, [0, 1], anchor, False, ExportConfig())
-    middle_before = ref[:, :2] + (0.5 * (t_grid[0] + t_grid[1]))[:, None] * left
-    middle_after = out[:, :2] + (0.5 * (t_grid[0] + t_grid[1]))[:, None] * left
-    assert np.abs(middle_after - middle_before).max() <= 0.05

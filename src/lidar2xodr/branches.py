@@ -548,7 +548,7 @@ def _separator_solid_from(cloud: MarkingCloud, main: LaneModel, ev: Event, cfg: 
     s_ev = float(main.s[ev.k])
     with np.errstate(invalid="ignore"):
         on = np.abs(t - t_sep[k]) <= cfg.assign_distance_m
-    on &= (s_pts >= s_ev - 6 * _GORE_M) & (s_pts <= s_ev + _DASH_GAP_M)  # two dash periods before the solid
+    on &= (s_pts >= s_ev - 4 * _GORE_M) & (s_pts <= s_ev + _DASH_GAP_M)
     along = np.sort(s_pts[on])
     if len(along) < 2:
         return ev.k
