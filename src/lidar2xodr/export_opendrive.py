@@ -983,20 +983,13 @@ def _anchor(other: _End, join: _Join, zero: set[int]) -> _Anchor:
                    None if join.continuation else (own[0], own[-1]))
 
 
-_END_HEADING_M = 10.0
-
-
 def _end_heading(grid: np.ndarray, xy: np.ndarray, at_end: bool) -> float:
-    """Heading of a line at one end: tangent of a line fit over its last `_END_HEADING_M`.
-
-    Short and straight, because a branch at its junction starts to curve within metres (highway_split:
-    a quadratic over 20 m tilted the start 0.06 rad the wrong way, and the blend bent the branch 0.6 m
-    off its markings).
-    """
+    """Heading of the model's reference at one end: tangent of a quadratic fit over its last 20 m."""
     s_end = grid[-1] if at_end else grid[0]
-    near = np.abs(grid - s_end) <= min(_END_HEADING_M, 0.5 * (grid[-1] - grid[0])) + 1e-9
+    near = np.abs(grid - s_end) <= min(20.0, 0.5 * (grid[-1] - grid[0])) + 1e-9
     d = grid[near] - s_end
-    return math.atan2(np.polyfit(d, xy[near, 1], 1)[0], np.polyfit(d, xy[near, 0], 1)[0])
+    deg = min(2, int(near.sum()) - 1)
+    return math.atan2(np.polyfit(d, xy[near, 1], deg)[deg - 1], np.polyfit(d, xy[near, 0], deg)[deg - 1])
 
 
 def _blend(grid: np.ndarray, ref: np.ndarray, left: np.ndarray, t_grid: dict[int, np.ndarray], ids: list[int],
@@ -1017,13 +1010,7 @@ def _blend(grid: np.ndarray, ref: np.ndarray, left: np.ndarray, t_grid: dict[int
     pivot = ref[e, :2] + t_mid * left[e]
     dist = grid[-1] - grid if at_end else grid - grid[0]
     fade = 1.0 - _smoothstep(dist / min(cfg.junction_blend_m, grid[-1] - grid[0]))
-    both = np.isfinite(t_grid[ids[first]]) & np.isfinite(t_grid[ids[last + 1]])
-    if both.sum() >= 2:  # the heading of the linked lanes' middle, which the reference may not follow
-        middle = ref[both, :2] + 0.5 * (t_grid[ids[first]][both] + t_grid[ids[last + 1]][both])[:, None] * left[both]
-        end_heading = _end_heading(grid[both], middle, at_end)
-    else:
-        end_heading = _end_heading(grid, ref[:, :2], at_end)
-    theta = float(wrap_angle(anchor.pose[2] - end_heading)) * fade
+    theta = float(wrap_angle(anchor.pose[2] - _end_heading(grid, ref[:, :2], at_end))) * fade
     c, s = np.cos(theta), np.sin(theta)
 
     def turn(v: np.ndarray) -> np.ndarray:
