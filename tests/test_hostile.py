@@ -499,6 +499,35 @@ def test_sigterm_and_sigint_leave_nothing(sig: int, code: int, tmp_path: Path, a
     assert (out / "map.xodr").read_text() == "the map of an earlier build"
 
 
+_CTRL_C_IN_C_CODE = """
+import ctypes, sys
+from lidar2xodr import check, cli
+
+def check_file(*args, **kwargs):
+    run = ctypes.pythonapi.PyRun_StringFlags
+    run.restype = ctypes.py_object
+    run.argtypes = [ctypes.c_char_p, ctypes.c_int, ctypes.py_object, ctypes.py_object, ctypes.c_void_p]
+    run(b"import os, signal\\nos.kill(os.getpid(), signal.SIGINT)\\nwhile True: pass\\n", 257, {}, {}, None)
+
+check.check_file = check_file
+sys.argv = ["lidar2xodr", "check", sys.argv[1]]
+cli.run()
+"""
+
+
+def test_ctrl_c_inside_c_code_that_runs_python_still_exits_130(tmp_path: Path, assets: dict[str, Path]) -> None:
+    """A KeyboardInterrupt that comes out of `PyRun_String` (lxml and Boost.Python run Python that way) makes
+    CPython kill its own process with SIGINT at exit, whatever exit code was asked for: a CI run of the
+    SIGINT test above saw -2 instead of 130 (the signal landed while lxml was busy)."""
+    (tmp_path / "ctrl_c_in_c_code.py").write_text(_CTRL_C_IN_C_CODE)
+    env = _env()
+    env["PYTHONPATH"] = f"{tmp_path}{os.pathsep}{env['PYTHONPATH']}"
+    proc = subprocess.run([sys.executable, "-m", "ctrl_c_in_c_code", str(assets["map"])], env=env,
+                          capture_output=True, text=True, timeout=60, preexec_fn=_as_in_a_terminal)
+    assert proc.returncode == 130, proc.stderr
+    assert [ln for ln in proc.stderr.splitlines() if ln.strip()] == ["interrupted nothing written"], proc.stderr
+
+
 def test_sigterm_to_the_whole_group_during_extraction_is_one_clean_exit(tmp_path: Path,
                                                                         assets: dict[str, Path]) -> None:
     """`timeout` and container stops signal every process: the extraction workers leave it to the build."""

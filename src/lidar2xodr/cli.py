@@ -592,5 +592,24 @@ def export_geojson(
     for warning in s.warnings:
         warn(warning)
 
+def run() -> None:
+    """The `lidar2xodr` command (console script and `python -m lidar2xodr.cli`).
+
+    An interrupted command (exit code 130 or 143) ends with `os._exit` once its streams are flushed: a
+    KeyboardInterrupt that came out of C code running Python (`PyRun_String`; lxml and Boost.Python do)
+    makes CPython kill its own process with SIGINT at exit, whatever code was asked for (a CI run saw
+    -2 instead of 130). Everything that needs cleaning up was cleaned up before the exit code was chosen.
+    """
+    try:
+        app()
+    except SystemExit as exc:
+        if exc.code in (130, 143):
+            for stream in (sys.stdout, sys.stderr):
+                with contextlib.suppress(Exception):
+                    stream.flush()
+            os._exit(exc.code)
+        raise
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(app())
+    run()
