@@ -31,6 +31,18 @@ def test_config_defaults_are_the_papers_values() -> None:
     assert cfg.export.piece_length_m == 100.0 and cfg.export.look_fraction == 0.125
 
 
+def test_every_config_parameter_is_read_by_the_package() -> None:
+    """A parameter nobody reads is a knob that does nothing (a revert once left six odometry_ground* behind)."""
+    import re
+
+    package = Path(__file__).resolve().parents[1] / "src" / "lidar2xodr"
+    code = "\n".join(p.read_text() for p in package.rglob("*.py") if p.name != "config.py")
+    unread = [f"{section}.{name}" for section, field in Config.model_fields.items()
+              for name in getattr(field.annotation, "model_fields", {})
+              if not re.search(rf"\b{re.escape(name)}\b", code)]
+    assert not unread, f"configuration parameters read nowhere: {unread}"
+
+
 def test_config_load_overrides_and_rejects(tmp_path: Path) -> None:
     good = tmp_path / "c.yaml"
     good.write_text("markings:\n  search_radius_m: 2.0\n")

@@ -71,13 +71,6 @@ class ExtractionConfig(_Section):
     odometry_max_speed_mps: float = Field(70.0, gt=0, description="ours: upper end of the start-speed search")
     odometry_bootstrap_s: float = Field(0.3, gt=0, description="ours: time between the two scans of the start-speed "
                                                    "search")
-    odometry_ground: bool = Field(True, description="ours: LiDAR odometry lifts each scan's road surface onto the "
-                                  "road already mapped (height, roll, pitch): kills the pitch drift of registration")
-    odometry_ground_cell_m: float = Field(0.5, gt=0, description="ours: xy cell of the odometry's road height map")
-    odometry_ground_range_m: float = Field(60.0, gt=0, description="ours: road points within this radius feed it")
-    odometry_ground_scale_m: float = Field(0.1, gt=0, description="ours: cut-off of the height fit's Tukey weights")
-    odometry_ground_min_cells: int = Field(50, ge=3, description="ours: fewer shared cells leave the pose as it is")
-    odometry_ground_keep_m: float = Field(120.0, gt=0, description="ours: road cells farther behind are forgotten")
     auto_method: Literal["local", "drive"] = Field(
         "local", description="ours, with auto_threshold: 'local' = paint is a bright outlier of the road surface "
         "around it (per point: range-, beam- and sensor-independent); 'drive' = one threshold per drive from the "
