@@ -90,12 +90,13 @@ def _line_run(s: np.ndarray, w: np.ndarray, k: np.ndarray, line: tuple[float, fl
     on = np.flatnonzero(np.abs(w - (line[0] + line[1] * s)) < cfg.taper_line_tolerance_m)
     if len(on) == 0:
         return on
-    ks = np.unique(k[on])
+    ks = np.flatnonzero(np.bincount(k[on]))
     cut = np.flatnonzero(np.diff(ks) * step > cfg.taper_max_gap_m)
     firsts, lasts = ks[np.r_[0, cut + 1]], ks[np.r_[cut, len(ks) - 1]]
-    inside = [np.sum((ks >= a) & (ks <= b) & (ks * step >= seed[0]) & (ks * step < seed[1]))
-              for a, b in zip(firsts, lasts, strict=True)]
-    j = int(np.argmax(inside))
+    stretch = np.zeros(len(ks), dtype=np.int64)
+    stretch[cut + 1] = 1
+    in_seed = (ks * step >= seed[0]) & (ks * step < seed[1])
+    j = int(np.argmax(np.bincount(np.cumsum(stretch)[in_seed], minlength=len(firsts))))
     return on[(k[on] >= firsts[j]) & (k[on] <= lasts[j])]
 
 
