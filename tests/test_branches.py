@@ -8,6 +8,7 @@ import pytest
 from lidar2xodr.branches import (
     _chained,
     _meeting_station,
+    _separator_solid_from,
     build_network,
     find_events,
     flip_model,
@@ -165,3 +166,47 @@ def test_a_merging_ramp_meets_its_lane_where_its_axis_reaches_the_lane_middle() 
     assert abs(_meeting_station(ramp, road, ev) - 180) <= 1
     far = LaneModel(s=ramp.s, reference=ramp.reference + [0.0, -8.0, 0.0], boundaries=[], sections=[])
     assert _meeting_station(far, road, ev) is None, "an axis that never comes within half a lane"
+
+
+def _separator(pieces: list[tuple[float, float]]) -> MarkingCloud:
+    """Paint of the separator (t = 0) of `_road`, as dense points on the stretches given."""
+    rng = np.random.default_rng(5)
+    xs = np.concatenate([np.arange(a, b, 0.1) for a, b in pieces])
+    return _cloud(np.column_stack([xs, rng.normal(0.0, 0.03, len(xs))]))
+
+
+@pytest.mark.parametrize(("pieces", "expected"), [
+    # dashes 6 m long every 18 m, solid from s 130 on (out of step with the dashes): the junction starts there
+    ([(a, a + 6.0) for a in range(70, 115, 18)] + [(130.0, 200.0)], 130),
+    # the solid stretch begins in step with the dashes (a dash at 124 runs into it): solid from that dash's end
+    ([(a, a + 6.0) for a in range(70, 110, 18)] + [(124.0, 200.0)], 130),
+    # broken up to the gore and beyond: where the lines separate
+    ([(a, a + 6.0) for a in range(70, 200, 18)], None),
+    # solid all along: where the lines separate
+    ([(60.0, 200.0)], None),
+    # turning solid 60 m before the gore: too far to be this junction's
+    ([(a, a + 6.0) for a in range(20, 85, 18)] + [(90.0, 200.0)], None),
+])
+def test_a_diverge_starts_where_its_separator_turns_solid(pieces: list[tuple[float, float]],
+                                                          expected: int | None) -> None:
+    """esmini's split and exit maps start their junctions where the line between the leaving lane and the
+    road turns solid, 10-20 m before the lines separate (highway_split s1: centre 0.284 -> 0.054 m)."""
+    cfg = Config().lanes
+    road = _road(widen_from=150.0)
+    ev = find_events(road, cfg)[0]
+    k = _separator_solid_from(_separator(pieces), road, ev, cfg)
+    assert k == (ev.k if expected is None else expected)
+    assert expected is None or ev.k - k >= 15
+
+
+def test_a_diverge_whose_branch_is_not_built_keeps_its_junction_where_the_lines_separate() -> None:
+    """Without a branch road the leaving lane ends at the junction: cut where its separator turns solid it
+    would lose 20 m of lane the markings show (highway_split s2/s3: lane graph 0.975 -> 0.95)."""
+    cfg = Config()
+    road = _road(widen_from=150.0)
+    ev = find_events(road, cfg.lanes)[0]
+    cloud = _separator([(a, a + 6.0) for a in range(70, 115, 18)] + [(130.0, 200.0)])
+    assert _separator_solid_from(cloud, road, ev, cfg.lanes) == 130 < ev.k
+    net = build_network(cloud, road, cfg.lanes, cfg.markings)
+    assert len(net.roads) == 2, "no branch is built from the separator's paint alone"
+    assert net.roads[0].s[-1] - net.roads[0].s[0] == pytest.approx(road.s[ev.k] - road.s[0])

@@ -531,3 +531,45 @@ def test_the_direct_form_is_valid_but_no_reader_here_loads_it(written) -> None:
             assert all(re.search("connectingRoad' is missing", ln) for ln in sumo["errors"]), sumo["errors"]
         if carla["available"]:
             assert not carla["ok"] and carla["errors"] == ["IndexError: _Map_base::at"], carla
+
+
+def test_a_branch_that_curves_soon_after_the_junction_is_not_turned_by_the_blend() -> None:
+    """highway_split s1: the branch leaves straight and curves from 6 m on, and its reference wobbles by 0.1 m
+    (both split lines' paint at the gore). Its heading at the junction is its linked lanes' middle over the
+    first metres; a quadratic of the reference over 20 m read 0.06 rad there and the blend turned the branch
+    0.6 m off its markings."""
+    from lidar2xodr.export_opendrive import _Anchor, _blend
+
+    grid = np.arange(0.0, 58.0, 1.0)
+    bend = np.where(grid > 6.0, -0.004 * (grid - 6.0) ** 2, 0.0)
+    wobble = 0.1 * np.exp(-0.5 * ((grid - 8.0) / 2.0) ** 2)
+    ref = np.column_stack([grid, bend + wobble, np.zeros_like(grid)])
+    left = np.tile([0.0, 1.0], (len(grid), 1))
+    t_grid = {0: LANE / 2 - wobble, 1: -LANE / 2 - wobble}
+    anchor = _Anchor(pose=(0.0, 0.0, 0.0), z=0.0, dz=0.0, roll=0.0, lanes=None, blend=(0, 0))  # type: ignore[arg-type]
+    out, _ = _blend(grid, ref, left, t_grid, [0, 1], anchor, False, ExportConfig())
+    middle_before = ref[:, :2] + (0.5 * (t_grid[0] + t_grid[1]))[:, None] * left
+    middle_after = out[:, :2] + (0.5 * (t_grid[0] + t_grid[1]))[:, None] * left
+    assert np.abs(middle_after - middle_before).max() <= 0.05
+
+
+def test_the_blend_turns_a_branch_end_with_the_least_sideways_move() -> None:
+    """A branch that ends 0.2 rad off the road it joins (a merge whose junction is reached at an angle) is
+    bent, not swung: its end takes the anchor's heading and no point moves sideways by more than 0.15 of
+    the turn times the blend length. Rotating the whole branch about its end (the blend before) moved it
+    0.26 x that (highway_merge s3: the ramp 2-3.5 m off its markings)."""
+    from lidar2xodr.export_opendrive import _Anchor, _blend
+
+    cfg = ExportConfig()
+    grid = np.arange(0.0, 80.0, 1.0)
+    ref = np.column_stack([grid, np.zeros_like(grid), np.zeros_like(grid)])
+    left = np.tile([0.0, 1.0], (len(grid), 1))
+    t_grid = {0: np.full(len(grid), LANE / 2), 1: np.full(len(grid), -LANE / 2)}
+    turn = 0.2
+    anchor = _Anchor(pose=(79.0, 0.0, turn), z=0.0, dz=0.0, roll=0.0, lanes=None, blend=(0, 0))  # type: ignore[arg-type]
+    out, _ = _blend(grid, ref, left, t_grid, [0, 1], anchor, True, cfg)
+    d = grid[-6:] - grid[-1]
+    heading = np.arctan2(np.polyfit(d, out[-6:, 1], 2)[1], np.polyfit(d, out[-6:, 0], 2)[1])
+    assert abs(heading - turn) <= 0.01
+    assert np.abs(out[:, 1]).max() <= 0.15 * turn * cfg.junction_blend_m
+    assert np.allclose(out[grid <= 79.0 - cfg.junction_blend_m, :2], ref[grid <= 79.0 - cfg.junction_blend_m, :2])

@@ -55,6 +55,7 @@ from lidar2xodr.errors import InputError
 _NORMAL_MARGIN_M = 0.3
 _NEW_LANE_SHARE = 0.7
 _GORE_M = 15.0
+_DASH_GAP_M = 1.0  # no marking point over this length of a line: a gap between dashes
 _MAX_HEADING_DEG = 30.0
 
 
@@ -437,6 +438,10 @@ def build_network(cloud: MarkingCloud, main: LaneModel, lanes_cfg: LanesConfig, 
     if not events:
         return RoadNetwork([main], [], list(main.warnings))
     ev = events[0]
+    # the branch is measured from the markings beyond where the lines separate, and cut at the junction
+    seen_from = ev
+    if ev.kind == "diverge":
+        ev = replace(ev, k=_separator_solid_from(cloud, main, ev, lanes_cfg))
     warnings = list(main.warnings)
     sec = main.sections[ev.section]
     lost = sec.boundary_ids[ev.lane + 1] if ev.side == "right" else sec.boundary_ids[ev.lane]
@@ -449,8 +454,8 @@ def build_network(cloud: MarkingCloud, main: LaneModel, lanes_cfg: LanesConfig, 
             road_a, road_b = slice_model(main, 0, ev.k), slice_model(main, ev.k, last, drop={lost})
         else:
             road_a, road_b = slice_model(main, 0, ev.k, drop={lost}), slice_model(main, ev.k, last)
-        sub = _branch_cloud(cloud, main, ev, _normal_lines(road_b if diverge else road_a, lanes_cfg), lanes_cfg,
-                            markings_cfg)
+        sub = _branch_cloud(cloud, main, seen_from if diverge else ev,
+                            _normal_lines(road_b if diverge else road_a, lanes_cfg), lanes_cfg, markings_cfg)
         if len(sub.xyz) < 50:
             return road_a, road_b, None, None, "too few markings beside the road there"
         try:
@@ -461,6 +466,10 @@ def build_network(cloud: MarkingCloud, main: LaneModel, lanes_cfg: LanesConfig, 
         return road_a, road_b, raw, branch, why
 
     road_a, road_b, raw, branch, why = attempt(ev)
+    if branch is None and diverge and ev.k != seen_from.k:
+        # no branch road: the lane ends at the junction, so it is kept up to where the lines separate
+        ev = seen_from
+        road_a, road_b, raw, branch, why = attempt(ev)
     if branch is None and raw is not None and not diverge:
         # the joining lane's outer line was carried back along the converging ramp: the junction is
         # where the ramp's lane meets the road's
@@ -517,6 +526,50 @@ def build_network(cloud: MarkingCloud, main: LaneModel, lanes_cfg: LanesConfig, 
     warnings.append(f"{label}: a {'branch' if diverge else 'ramp'} of {n_lanes} lane(s), {branch.s[-1]:.0f} m, "
                     "joined by a junction")
     return RoadNetwork(roads, links, warnings + _further(road_b if diverge else road_a, lanes_cfg))
+
+
+def _separator_solid_from(cloud: MarkingCloud, main: LaneModel, ev: Event, cfg: LanesConfig) -> int:
+    """The diverge's junction station moved back to where the line between the leaving lane and the road
+    turns from broken to solid, if it does so within two gore lengths before the lines separate.
+
+    A split or an exit is announced by its separator turning solid: from there on no car may change
+    between the two, so the lanes belong to different roads (the esmini maps start their junctions
+    there, 10-20 m before the lines separate). A line solid all along, or broken up to the gore, leaves
+    the station where it was. A dash gap is any stretch over `_DASH_GAP_M` without marking points. A
+    solid stretch that begins in step with the dashes before it (one dash period after the last one)
+    begins with a dash: the line is known to be solid only from that dash's end on.
+    """
+    sec = main.sections[ev.section]
+    sep = sec.boundary_ids[ev.lane] if ev.side == "right" else sec.boundary_ids[ev.lane + 1]
+    t_sep = {b.id: b for b in main.boundaries}[sep].t
+    if not np.isfinite(t_sep[ev.k]):
+        return ev.k
+    xy = np.asarray(cloud.xyz)[:, :2]
+    ref, normal = _frame(main)
+    k, t = _project(main, xy)
+    tangent = np.stack([normal[:, 1], -normal[:, 0]], axis=1)
+    s_pts = main.s[k] + np.sum((xy - ref[k]) * tangent[k], axis=1)
+    s_ev = float(main.s[ev.k])
+    with np.errstate(invalid="ignore"):
+        on = np.abs(t - t_sep[k]) <= cfg.assign_distance_m
+    on &= (s_pts >= s_ev - 6 * _GORE_M) & (s_pts <= s_ev + _DASH_GAP_M)  # two dash periods before the solid
+    along = np.sort(s_pts[on])
+    if len(along) < 2:
+        return ev.k
+    cuts = np.flatnonzero(np.diff(along) > _DASH_GAP_M)
+    starts, ends = along[np.r_[0, cuts + 1]], along[np.r_[cuts, len(along) - 1]]
+    inside = np.flatnonzero(starts <= s_ev)
+    if len(inside) < 2 or ends[inside[-1]] < s_ev:
+        return ev.k
+    i = int(inside[-1])
+    start = float(starts[i])
+    if i >= 2:  # two dashes before it: their period (from their ends: the window cuts the first's start)
+        period = float(np.median(np.diff(ends[:i])))
+        if abs(start - starts[i - 1] - period) <= _DASH_GAP_M:
+            start += float(np.median(ends[1:i] - starts[1:i]))
+    if not (s_ev - 2 * _GORE_M <= start < s_ev - _DASH_GAP_M):
+        return ev.k
+    return int(np.searchsorted(main.s, start))
 
 
 def _meeting_station(branch: LaneModel, main: LaneModel, ev: Event) -> int | None:

@@ -983,23 +983,27 @@ def _anchor(other: _End, join: _Join, zero: set[int]) -> _Anchor:
                    None if join.continuation else (own[0], own[-1]))
 
 
+_END_HEADING_M = 10.0
+
+
 def _end_heading(grid: np.ndarray, xy: np.ndarray, at_end: bool) -> float:
-    """Heading of the model's reference at one end: tangent of a quadratic fit over its last 20 m."""
+    """Heading of a line at one end: tangent of a line fit over its last `_END_HEADING_M`."""
     s_end = grid[-1] if at_end else grid[0]
-    near = np.abs(grid - s_end) <= min(20.0, 0.5 * (grid[-1] - grid[0])) + 1e-9
+    near = np.abs(grid - s_end) <= min(_END_HEADING_M, 0.5 * (grid[-1] - grid[0])) + 1e-9
     d = grid[near] - s_end
-    deg = min(2, int(near.sum()) - 1)
-    return math.atan2(np.polyfit(d, xy[near, 1], deg)[deg - 1], np.polyfit(d, xy[near, 0], deg)[deg - 1])
+    return math.atan2(np.polyfit(d, xy[near, 1], 1)[0], np.polyfit(d, xy[near, 0], 1)[0])
 
 
 def _blend(grid: np.ndarray, ref: np.ndarray, left: np.ndarray, t_grid: dict[int, np.ndarray], ids: list[int],
            anchor: _Anchor, at_end: bool, cfg: ExportConfig) -> tuple[np.ndarray, np.ndarray]:
     """Bend a branch's model onto its anchor near the junction end; the rest stays where the markings are.
 
-    The middle of its linked lanes at that end moves onto the anchor point and its heading turns onto
-    the anchor's; the correction (a rotation about that middle plus a shift, and a height shift) fades
-    with a smoothstep over `junction_blend_m` (or the road's length if shorter). Boundaries move with
-    the reference: their normals turn by the same angle.
+    The middle of its linked lanes at that end moves onto the anchor point (a shift, and a height shift,
+    that fade with a smoothstep over `junction_blend_m`, or the road's length if shorter) and its heading
+    turns onto the anchor's by the least sideways bend: a cubic offset theta * d * (1 - d / L)^2 at
+    distance d from the end, which turns the end by theta and vanishes with its slope at L. Rotating
+    the branch about its end instead swung it 0.26 * theta * L off its markings, the bend moves it
+    0.15 * theta * L at most. Boundaries move with the reference: their normals turn with its heading.
     """
     e = len(grid) - 1 if at_end else 0
     first, last = anchor.blend
@@ -1009,17 +1013,24 @@ def _blend(grid: np.ndarray, ref: np.ndarray, left: np.ndarray, t_grid: dict[int
         t_mid += 0.5 * float(t_grid[bid][ok[np.argmin(np.abs(ok - e))]]) if len(ok) else 0.0
     pivot = ref[e, :2] + t_mid * left[e]
     dist = grid[-1] - grid if at_end else grid - grid[0]
-    fade = 1.0 - _smoothstep(dist / min(cfg.junction_blend_m, grid[-1] - grid[0]))
-    theta = float(wrap_angle(anchor.pose[2] - _end_heading(grid, ref[:, :2], at_end))) * fade
+    length = min(cfg.junction_blend_m, grid[-1] - grid[0])
+    u = np.clip(dist / length, 0.0, 1.0)
+    fade = 1.0 - _smoothstep(dist / length)
+    both = np.isfinite(t_grid[ids[first]]) & np.isfinite(t_grid[ids[last + 1]])
+    if both.sum() >= 2:  # the heading of the linked lanes' middle, which the reference may not follow
+        middle = ref[both, :2] + 0.5 * (t_grid[ids[first]][both] + t_grid[ids[last + 1]][both])[:, None] * left[both]
+        end_heading = _end_heading(grid[both], middle, at_end)
+    else:
+        end_heading = _end_heading(grid, ref[:, :2], at_end)
+    theta0 = float(wrap_angle(anchor.pose[2] - end_heading))
+    sideways = theta0 * length * u * (1.0 - u) ** 2 * (-1.0 if at_end else 1.0)
+    theta = theta0 * (1.0 - u) * (1.0 - 3.0 * u)
     c, s = np.cos(theta), np.sin(theta)
-
-    def turn(v: np.ndarray) -> np.ndarray:
-        return np.stack([c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1]], axis=1)
-
+    turned = np.stack([c * left[:, 0] - s * left[:, 1], s * left[:, 0] + c * left[:, 1]], axis=1)
     out = ref.copy()
-    out[:, :2] = pivot + turn(ref[:, :2] - pivot) + fade[:, None] * (np.array(anchor.pose[:2]) - pivot)
+    out[:, :2] = ref[:, :2] + sideways[:, None] * left + fade[:, None] * (np.array(anchor.pose[:2]) - pivot)
     out[:, 2] = ref[:, 2] + fade * (anchor.z - ref[e, 2])
-    return out, turn(left)
+    return out, turned
 
 
 def _project_boundaries(plan: _Plan, xy: np.ndarray, left: np.ndarray, t_grid: dict[int, np.ndarray],
