@@ -35,13 +35,22 @@ def _robust_curve(
             observed[a:b] = False
     w_pt, scale = _tukey_fit(k, t, w_pt, n, lam, iters)
     has_points = np.bincount(k, minlength=n) > 0
+    by_station = np.argsort(k, kind="stable")
+    k_sorted = k[by_station]
+
+    def on_stations(first: int, end: int) -> np.ndarray:
+        """Indices of the points on stations first..end-1, in their given order (sums over them stay exact)."""
+        i, j = np.searchsorted(k_sorted, [first, end])
+        return np.sort(by_station[i:j])
+
     for a, b in _runs(has_points | (np.convolve(has_points, np.ones(3), "same") >= 2)):
         if b - a > 10:
             continue
-        island = (k >= a - 2) & (k < b + 2)
+        island = on_stations(a - 2, b + 2)
         lo, hi = max(a - 80, 0), min(b + 80, n)
-        near = (k >= lo) & (k < hi) & ~island & (w_pt > 0)
-        if near.sum() < 10:
+        near = on_stations(lo, hi)
+        near = near[((k[near] < a - 2) | (k[near] >= b + 2)) & (w_pt[near] > 0)]
+        if len(near) < 10:
             continue
         z = _whittaker_points(k[near] - lo, t[near], w_pt[near], hi - lo, lam)
         span = np.flatnonzero(np.isfinite(z))
