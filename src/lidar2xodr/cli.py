@@ -592,6 +592,7 @@ def export_geojson(
     for warning in s.warnings:
         warn(warning)
 
+
 def run() -> None:
     """The `lidar2xodr` command (console script and `python -m lidar2xodr.cli`).
 

@@ -987,7 +987,12 @@ _END_HEADING_M = 10.0
 
 
 def _end_heading(grid: np.ndarray, xy: np.ndarray, at_end: bool) -> float:
-    """Heading of a line at one end: tangent of a line fit over its last `_END_HEADING_M`."""
+    """Heading of a line at one end: tangent of a line fit over its last `_END_HEADING_M`.
+
+    Short, because a branch starts to curve within metres of its junction (highway_split: a quadratic
+    over 20 m of the reference tilted the start 0.06 rad the wrong way, and the blend bent the branch
+    0.6 m off its markings).
+    """
     s_end = grid[-1] if at_end else grid[0]
     near = np.abs(grid - s_end) <= min(_END_HEADING_M, 0.5 * (grid[-1] - grid[0])) + 1e-9
     d = grid[near] - s_end
@@ -1015,7 +1020,7 @@ def _blend(grid: np.ndarray, ref: np.ndarray, left: np.ndarray, t_grid: dict[int
     dist = grid[-1] - grid if at_end else grid - grid[0]
     length = min(cfg.junction_blend_m, grid[-1] - grid[0])
     u = np.clip(dist / length, 0.0, 1.0)
-    fade = 1.0 - _smoothstep(dist / length)
+    fade = 1.0 - _smoothstep(u)
     both = np.isfinite(t_grid[ids[first]]) & np.isfinite(t_grid[ids[last + 1]])
     if both.sum() >= 2:  # the heading of the linked lanes' middle, which the reference may not follow
         middle = ref[both, :2] + 0.5 * (t_grid[ids[first]][both] + t_grid[ids[last + 1]][both])[:, None] * left[both]
