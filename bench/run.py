@@ -98,7 +98,9 @@ def bench_map(name: str, xodr: Path, out: Path, length_m: float, lane_target: fl
         return row
     row.update(check_row(xodr_out, base / "check.json"))
     metrics_path = base / "metrics.json"
-    rc, _, log = run(CLI + ["compare", str(xodr_out), str(xodr), "--json", str(metrics_path)])
+    truth = drive / "truth" / "poses.csv"
+    rc, _, log = run(CLI + ["compare", str(xodr_out), str(xodr), "--json", str(metrics_path)]
+                     + (["--trajectory", str(truth)] if truth.exists() else []))
     if not metrics_path.exists():
         row["error"] = "compare: " + log.strip().splitlines()[-1]
         return row
@@ -118,6 +120,7 @@ def bench_map(name: str, xodr: Path, out: Path, length_m: float, lane_target: fl
         lane_graph_wrong_m=m.get("lane_graph", {}).get("wrong_m"),
         lane_graph_unheld_m=m.get("lane_graph", {}).get("unheld_m"),
         lane_graph_eval_m=m.get("lane_graph", {}).get("eval_length_m"),
+        driven=(m.get("driven") or {}).get("share"),
         lane_target=lane_target,
     )
     lanes_ok = row["lane_count"] >= lane_target

@@ -108,11 +108,50 @@ def test_changes_against_an_earlier_sweep_list_worse_cases_first(tmp_path: Path)
         sweep._store(old / f"{sweep.case_id(case)}.json", {"commit": "x"}, row)
     now = [_row("a", boundaries_rmse=0.051), _row("b", lane_graph=0.9), _row("c", lane_count=1.0),
            {"map": "d", "seed": 1, "error": "build: no road"}]
-    items = sweep.changes(now, old, todo)
+    items = sweep.changes(now, old.parent, todo, tmp_path / "new")
     assert [x["case"] for x in items] == ["b-s1-1000m", "d-s1-1000m", "c-s1-1000m"], "within tolerance: a"
     assert items[0]["worse"] == ["lane_graph 1.000 -> 0.900"] and items[2]["better"] == ["lane_count 0.500 -> 1.000"]
     assert items[1]["worse"] == ["built -> build: no road"]
     assert "3 (2 with a metric worse)" in sweep.format_changes(items)
+
+
+def _straight(path: Path, *pieces: tuple[float, float, float, float]) -> Path:
+    """A one-way road of two 3.5 m lanes along +x, as (x start, length, shift, shift per metre) pieces."""
+    roads = "".join(
+        f'<road id="{i + 1}" length="{n}" junction="-1" rule="RHT"><planView><geometry s="0" x="{x0}" y="0" hdg="0" '
+        f'length="{n}"><line/></geometry></planView><lanes><laneOffset s="0" a="{dt}" b="{slope}" c="0" d="0"/>'
+        '<laneSection s="0"><center><lane id="0" type="none" level="false"/></center><right>'
+        + "".join(f'<lane id="-{k}" type="driving" level="false"><width sOffset="0" a="3.5" b="0" c="0" d="0"/>'
+                  "</lane>" for k in (1, 2))
+        + "</right></laneSection></lanes></road>"
+        for i, (x0, n, dt, slope) in enumerate(pieces)
+    )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(f'<?xml version="1.0" encoding="UTF-8"?>\n<OpenDRIVE><header revMajor="1" revMinor="8" name="t" '
+                    f'version="1"/>{roads}</OpenDRIVE>\n', encoding="utf-8")
+    return path
+
+
+@pytest.mark.parametrize(("common_shift", "worse"), [(0.0, False), (0.1, True)])
+def test_more_road_is_judged_on_the_common_stretch(tmp_path: Path, common_shift: float, worse: bool) -> None:
+    """A map that builds more road is worse only if it is worse where the earlier map also built road."""
+    case = {"map": "m", "seed": 1, "length_m": 300.0, "xodr": str(_straight(tmp_path / "ref.xodr", (0, 300, 0, 0)))}
+    cid = sweep.case_id(case)
+    _straight(tmp_path / "old" / "cases" / cid / "map.xodr", (0, 150, 0, 0))
+    # the added road drifts off the truth from where the earlier map ended (0.2 m at its end)
+    _straight(tmp_path / "new" / "cases" / cid / "map.xodr", (0, 150, common_shift, 0),
+              (150, 150, common_shift, 0.2 / 150))
+    sweep._store(tmp_path / "old" / "rows" / f"{cid}.json", {"commit": "x"}, _row("m", boundaries_rmse=0.0,
+                                                                                   driven=0.5))
+    now = [_row("m", boundaries_rmse=0.07, driven=1.0)]
+    common = sweep.common_rmse(tmp_path / "new" / "cases" / cid / "map.xodr",
+                               tmp_path / "old" / "cases" / cid / "map.xodr", Path(case["xodr"]))
+    assert common["boundaries_rmse"] == pytest.approx((0.0, common_shift), abs=0.01), "the seam's samples only"
+    (item,) = sweep.changes(now, tmp_path / "old", [case], tmp_path / "new")
+    assert "driven 0.500 -> 1.000" in item["better"]
+    listed = item["worse"] if worse else item["better"]
+    assert any(x.startswith("boundaries_rmse 0.000 -> 0.070 over more road; on the common stretch 0.000 -> ")
+               for x in listed)
 
 
 def test_drives_are_reused_only_from_finished_cases(tmp_path: Path) -> None:

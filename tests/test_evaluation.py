@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from lidar2xodr.cli import app
 from lidar2xodr.config import EvaluationConfig
 from lidar2xodr.errors import InputError
-from lidar2xodr.evaluation import compare_maps
+from lidar2xodr.evaluation import compare_maps, load_trajectory
 
 CFG = EvaluationConfig()
 DRV = ("driving", 3.5)
@@ -316,3 +316,37 @@ def test_a_connecting_road_that_leaves_is_not_part_of_the_carriageway(tmp_path: 
     m = compare_maps(gen, ref, CFG)
     assert 0.85 < m["lane_count_agreement"] < 0.97
     assert m["centerline"]["max_m"] > 1.0
+
+
+def _trajectory(path: Path, xy: list[tuple[float, float]]) -> Path:
+    path.write_text("time,x,y,z\n" + "".join(f"{i},{x},{y},0\n" for i, (x, y) in enumerate(xy)), encoding="utf-8")
+    return path
+
+
+def test_driven_share_is_the_built_part_of_the_road_the_drive_travelled(tmp_path: Path) -> None:
+    ref = _map(tmp_path / "ref.xodr", _road("1", 300.0))
+    half = _map(tmp_path / "half.xodr", _road("1", 150.0))
+    along = _trajectory(tmp_path / "along.csv", [(float(x), -2.75) for x in range(0, 301, 10)])
+    back = _trajectory(tmp_path / "back.csv", [(float(x), -2.75) for x in range(300, -1, -10)])
+    m = compare_maps(half, ref, CFG, trajectory=load_trajectory(along))
+    assert m["driven"]["driven_m"] == pytest.approx(300.0, abs=1.0)
+    assert m["driven"]["share"] == pytest.approx(0.5, abs=0.01)
+    assert compare_maps(ref, ref, CFG, trajectory=load_trajectory(along))["driven"]["share"] == pytest.approx(1.0)
+    assert compare_maps(ref, ref, CFG)["driven"] is None
+    wrong_way = compare_maps(ref, ref, CFG, trajectory=load_trajectory(back))["driven"]
+    assert wrong_way["driven_m"] == 0.0, "against the only carriageway's travel direction: not a driven road"
+
+
+def test_compare_trajectory_bad_input_is_one_line(tmp_path: Path) -> None:
+    ref = _map(tmp_path / "ref.xodr", _road("1", 300.0))
+    bad = tmp_path / "bad.csv"
+    bad.write_text("time,lat,lon\n0,1,2\n", encoding="utf-8")
+    with pytest.raises(InputError, match="x and y columns"):
+        load_trajectory(bad)
+    result = CliRunner().invoke(app, ["compare", str(ref), str(ref), "--trajectory", str(bad)])
+    assert result.exit_code != 0 and "bad.csv" in result.output and "Traceback" not in result.output
+    good = _trajectory(tmp_path / "good.csv", [(0.0, -2.75), (300.0, -2.75)])
+    result = CliRunner().invoke(app, ["compare", str(ref), str(ref), "--trajectory", str(good),
+                                      "--json", str(tmp_path / "m.json")])
+    assert result.exit_code == 0, result.output
+    assert json.loads((tmp_path / "m.json").read_text())["driven"]["share"] == pytest.approx(1.0)

@@ -220,15 +220,19 @@ def compare(
     align: bool = typer.Option(False, "--align", help="First move the generated map rigidly (2D) onto the reference "
                                "(its markings' registration, within fusion.search_radius_m): the shape without a "
                                "GNSS bias."),
+    trajectory: Path | None = _opt(None, "--trajectory", help="The drive's path in the reference's frame (CSV with "
+                                   "x and y columns, e.g. a simulated drive's truth/poses.csv): also report the "
+                                   "share of the driven road that was built."),
 ) -> None:
     """The paper's lateral distance between two maps: RMSE, mean, sigma, lane count, widths, coverage."""
     from lidar2xodr.config import Config
-    from lidar2xodr.evaluation import compare_maps, print_metrics
+    from lidar2xodr.evaluation import compare_maps, load_trajectory, print_metrics
 
     prepare_outputs([json_out])
     full = Config.load(config)
+    path = None if trajectory is None else load_trajectory(trajectory)
     with _busy(f"comparing {generated} with {reference}"):
-        metrics = compare_maps(generated, reference, full.evaluation, full.fusion if align else None)
+        metrics = compare_maps(generated, reference, full.evaluation, full.fusion if align else None, path)
     if json_out:
         write_json(json_out, metrics)
     print_metrics(metrics, out)

@@ -81,6 +81,15 @@ drive's GNSS bias, as the paper's drive-to-drive protocol compares drives of unb
    does, so uncovered or unheld length inside it is wrong, never agreement. `agreement` = agreeing
    length / evaluated reference lane length, `wrong_m` = the rest. Full rule:
    `lidar2xodr.lane_graph`.
+
+9. `driven` (only with a trajectory: `compare --trajectory`, e.g. a simulated drive's
+   truth/poses.csv): how much of the road the drive travelled became map. The path is resampled every
+   `sample_step_m` by arc length, its heading taken from the path itself. A sample was driven on the
+   road when the nearest reference carriageway centre of its travel direction (rule 1's heading rule,
+   checked: no fallback to the other direction) lies within that carriageway's half-width and the
+   sample is beside it; the same test against the generated carriageways says it was built.
+   `share` = built / driven length. The lateral metrics above only look at what was built: a change
+   that builds less road (or the easy half of it) can lower them, so they are read beside this one.
 """
 
 from __future__ import annotations
@@ -484,11 +493,13 @@ def _rigid_alignment(gen: Carriageways, ref: Carriageways, transform: Any, align
                    "inlier_share": share}
 
 
-def compare_maps(generated: Path, reference: Path, cfg: EvaluationConfig, align: FusionConfig | None = None
-                 ) -> dict[str, Any]:
+def compare_maps(generated: Path, reference: Path, cfg: EvaluationConfig, align: FusionConfig | None = None,
+                 trajectory: np.ndarray | None = None) -> dict[str, Any]:
     """Metrics of a generated map against a reference map (rules in the module docstring).
 
     With `align`, the generated map is first moved rigidly in 2D onto the reference (`_rigid_alignment`).
+    With `trajectory` ((n, 2) x, y in the reference's frame), also the share of the driven road that was
+    built (rule 9).
     """
     generated, reference = Path(generated), Path(reference)
     gen_map, ref_map = _load(generated), _load(reference)
@@ -534,6 +545,7 @@ def compare_maps(generated: Path, reference: Path, cfg: EvaluationConfig, align:
         "coverage": coverage,
         "reference_eval_length_m": ref_length,
         "lane_graph": lane_graph,
+        "driven": None if trajectory is None else _driven(gen, ref, trajectory, cfg.sample_step_m, tol),
         "frame": frame,
         "alignment": alignment,
         "settings": {
@@ -546,6 +558,50 @@ def compare_maps(generated: Path, reference: Path, cfg: EvaluationConfig, align:
             "lane_graph_taper_m": cfg.lane_graph_taper_m,
         },
     }
+
+
+def load_trajectory(path: Path) -> np.ndarray:
+    """x, y of a drive's path from a CSV with a header naming x and y columns (rule 9)."""
+    path = Path(path)
+    try:
+        with path.open(encoding="utf-8") as fh:
+            header = [c.strip().lower() for c in fh.readline().split(",")]
+            if "x" not in header or "y" not in header:
+                raise InputError(path, f"a trajectory needs x and y columns; the header has {', '.join(header)}")
+            cols = (header.index("x"), header.index("y"))
+            xy = np.array([[float(row.split(",")[c]) for c in cols] for row in fh if row.strip()], dtype=np.float64)
+    except OSError as exc:
+        raise InputError(path, f"cannot read the trajectory: {exc.strerror or exc}") from None
+    except (ValueError, IndexError, UnicodeDecodeError):
+        raise InputError(path, "a trajectory row has no number in its x or y column") from None
+    if len(xy) < 2 or not np.isfinite(xy).all():
+        raise InputError(path, "a trajectory needs at least two rows of finite x and y")
+    return xy
+
+
+def _driven(gen: Carriageways, ref: Carriageways, path: np.ndarray, step: float, tol: float) -> dict[str, float]:
+    """Rule 9: the driven road length and the share of it the generated map holds."""
+    arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(path, axis=0).T))])
+    moved = np.concatenate([[True], np.diff(arc) > 1e-6])
+    path, arc = path[moved], arc[moved]
+    if arc[-1] < step:
+        return {"share": 0.0, "driven_m": 0.0, "built_m": 0.0}
+    u = np.arange(0.0, arc[-1], step)
+    q = np.stack([np.interp(u, arc, path[:, k]) for k in range(2)], axis=1)
+    ahead = np.stack([np.interp(np.minimum(u + step, arc[-1]), arc, path[:, k]) for k in range(2)], axis=1)
+    behind = np.stack([np.interp(np.maximum(u - step, 0.0), arc, path[:, k]) for k in range(2)], axis=1)
+    hdg = np.arctan2(*(ahead - behind).T[::-1])
+
+    def on(cw: Carriageways) -> np.ndarray:
+        if len(cw.centre.xy) == 0:
+            return np.zeros(len(q), bool)
+        d, v, past = nearest(cw.centre, q, hdg, tol)
+        return (d <= cw.half_width[v]) & ~past & (np.abs(wrap_angle(cw.centre.hdg[v] - hdg)) <= tol)
+
+    driven = on(ref)
+    built = driven & on(gen)
+    driven_m, built_m = float(driven.sum()) * step, float(built.sum()) * step
+    return {"share": built_m / driven_m if driven_m > 0 else 0.0, "driven_m": driven_m, "built_m": built_m}
 
 
 def _lane_width(gen: Carriageways, ref: Carriageways, matched: np.ndarray, v_c: np.ndarray, min_w: float
@@ -615,6 +671,9 @@ def print_metrics(metrics: dict[str, Any], console: Console) -> None:
     z = metrics["elevation"]
     summary.add_row("elevation RMSE / mean / max (m)", f"{z['rmse_m']:.3f} / {z['mean_m']:+.3f} / {z['max_m']:.3f}")
     summary.add_row("coverage of the reference", f"{metrics['coverage']:.3f}")
+    if metrics.get("driven"):
+        dr = metrics["driven"]
+        summary.add_row("driven road built", f"{dr['share']:.3f} ({dr['built_m']:.0f} of {dr['driven_m']:.0f} m)")
     graph = metrics["lane_graph"]
     summary.add_row("lane graph agreement / breaks / wrong (m)",
                     f"{graph['agreement']:.3f} / {graph['breaks']} / {graph['wrong_m']:.0f}")
