@@ -300,7 +300,8 @@ def changes(rows: list[dict], before: Path, todo: list[dict], out: Path) -> list
     Where the driven share rose, a rise of an RMSE in LIKE_FOR_LIKE is measured again on the road both
     maps built (`common_rmse`): it is worse only when it is worse there; otherwise it is listed with both
     numbers as accuracy on the added road, not a regression (the added road still counts in the RMSE
-    and in the targets)."""
+    and in the targets). Two maps that share no road at all (the earlier one built a stretch the new
+    one does not, or a street beside the drive) are different road: the driven share decides."""
     items = []
     for case, row in zip(todo, rows, strict=True):
         path = before / "rows" / f"{case_id(case)}.json"
@@ -326,8 +327,12 @@ def changes(rows: list[dict], before: Path, todo: list[dict], out: Path) -> list
                     common = common_rmse(maps[1], maps[0], Path(case["xodr"]))
                 if common is not None:
                     c_old, c_new = common[key]
-                    text += f" over more road; on the common stretch {c_old:.3f} -> {c_new:.3f}"
-                    worse = not (c_new - c_old <= CHANGE_TOL[key])
+                    if math.isnan(c_old) and math.isnan(c_new):
+                        text += " over more road; the two maps share no road (the driven share decides)"
+                        worse = False
+                    else:
+                        text += f" over more road; on the common stretch {c_old:.3f} -> {c_new:.3f}"
+                        worse = not (c_new - c_old <= CHANGE_TOL[key])
             (item["worse"] if worse else item["better"]).append(text)
         if item["worse"] or item["better"]:
             items.append(item)

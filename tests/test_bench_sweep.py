@@ -154,6 +154,22 @@ def test_more_road_is_judged_on_the_common_stretch(tmp_path: Path, common_shift:
                for x in listed)
 
 
+def test_maps_of_different_road_are_judged_by_the_driven_share(tmp_path: Path) -> None:
+    """An earlier map of a street beside the drive and a new map of the driven road share no road:
+    their RMSEs are of different road, so the driven share decides; a lane count is still compared."""
+    case = {"map": "m", "seed": 1, "length_m": 300.0, "xodr": str(_straight(tmp_path / "ref.xodr", (0, 300, 0, 0)))}
+    cid = sweep.case_id(case)
+    _straight(tmp_path / "old" / "cases" / cid / "map.xodr", (0, 100, 0, 0))
+    _straight(tmp_path / "new" / "cases" / cid / "map.xodr", (150, 150, 0.1, 0))
+    sweep._store(tmp_path / "old" / "rows" / f"{cid}.json", {"commit": "x"},
+                 _row("m", boundaries_rmse=0.0, driven=0.33))
+    (item,) = sweep.changes([_row("m", boundaries_rmse=0.1, driven=0.5, lane_count=0.9)], tmp_path / "old", [case],
+                            tmp_path / "new")
+    assert "boundaries_rmse 0.000 -> 0.100 over more road; the two maps share no road (the driven share decides)" \
+        in item["better"]
+    assert item["worse"] == ["lane_count 1.000 -> 0.900"]
+
+
 def test_drives_are_reused_only_from_finished_cases(tmp_path: Path) -> None:
     case = {"map": "a", "seed": 1, "length_m": 1000.0}
     first, second = tmp_path / "one", tmp_path / "two"
