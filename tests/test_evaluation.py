@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from lidar2xodr.cli import app
 from lidar2xodr.config import EvaluationConfig
 from lidar2xodr.errors import InputError
-from lidar2xodr.evaluation import compare_maps, load_trajectory
+from lidar2xodr.evaluation import compare_maps, load_trajectory, path_on_map
 
 CFG = EvaluationConfig()
 DRV = ("driving", 3.5)
@@ -333,6 +333,7 @@ def test_driven_share_is_the_built_part_of_the_road_the_drive_travelled(tmp_path
     assert m["driven"]["share"] == pytest.approx(0.5, abs=0.01)
     assert compare_maps(ref, ref, CFG, trajectory=load_trajectory(along))["driven"]["share"] == pytest.approx(1.0)
     assert compare_maps(ref, ref, CFG)["driven"] is None
+    assert path_on_map(half, load_trajectory(along), CFG)["share"] == pytest.approx(0.5, abs=0.01), "no reference"
     wrong_way = compare_maps(ref, ref, CFG, trajectory=load_trajectory(back))["driven"]
     assert wrong_way["driven_m"] == 0.0, "against the only carriageway's travel direction: not a driven road"
 

@@ -45,6 +45,8 @@ def test_build_check_compare(demo_drive: tuple[Path, Path], tmp_path: Path) -> N
     assert metrics["centerline"]["rmse_m"] < 0.3
     assert metrics["lane_count_agreement"] > 0.9
     assert abs(metrics["lane_width"]["bias_m"]) < 0.15
+    on_map = result.summary["drive_on_map"]
+    assert 650.0 < on_map["path_m"] < 720.0 and on_map["share"] > 0.8, "the drive's own path lies on the map"
     html = (tmp_path / "report" / "index.html").read_text()
     assert f"<h1>{out}</h1>" in html, "the report names the map where it was written"
     assert 'id="map"' in html and 'id="along-road"' in html and 'id="raw"' in html

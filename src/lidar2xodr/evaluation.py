@@ -579,29 +579,46 @@ def load_trajectory(path: Path) -> np.ndarray:
     return xy
 
 
-def _driven(gen: Carriageways, ref: Carriageways, path: np.ndarray, step: float, tol: float) -> dict[str, float]:
-    """Rule 9: the driven road length and the share of it the generated map holds."""
+def _path_samples(path: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """A path resampled every `step` by arc length, with the heading of the path itself (rule 9)."""
     arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(path, axis=0).T))])
     moved = np.concatenate([[True], np.diff(arc) > 1e-6])
     path, arc = path[moved], arc[moved]
     if arc[-1] < step:
-        return {"share": 0.0, "driven_m": 0.0, "built_m": 0.0}
+        return np.zeros((0, 2)), np.zeros(0)
     u = np.arange(0.0, arc[-1], step)
     q = np.stack([np.interp(u, arc, path[:, k]) for k in range(2)], axis=1)
     ahead = np.stack([np.interp(np.minimum(u + step, arc[-1]), arc, path[:, k]) for k in range(2)], axis=1)
     behind = np.stack([np.interp(np.maximum(u - step, 0.0), arc, path[:, k]) for k in range(2)], axis=1)
-    hdg = np.arctan2(*(ahead - behind).T[::-1])
+    return q, np.arctan2(*(ahead - behind).T[::-1])
 
-    def on(cw: Carriageways) -> np.ndarray:
-        if len(cw.centre.xy) == 0:
-            return np.zeros(len(q), bool)
-        d, v, past = nearest(cw.centre, q, hdg, tol)
-        return (d <= cw.half_width[v]) & ~past & (np.abs(wrap_angle(cw.centre.hdg[v] - hdg)) <= tol)
 
-    driven = on(ref)
-    built = driven & on(gen)
+def _on_carriageway(cw: Carriageways, q: np.ndarray, hdg: np.ndarray, tol: float) -> np.ndarray:
+    """Whether each sample lies on a carriageway of its own travel direction, beside it (rule 9)."""
+    if len(cw.centre.xy) == 0 or len(q) == 0:
+        return np.zeros(len(q), bool)
+    d, v, past = nearest(cw.centre, q, hdg, tol)
+    return (d <= cw.half_width[v]) & ~past & (np.abs(wrap_angle(cw.centre.hdg[v] - hdg)) <= tol)
+
+
+def _driven(gen: Carriageways, ref: Carriageways, path: np.ndarray, step: float, tol: float) -> dict[str, float]:
+    """Rule 9: the driven road length and the share of it the generated map holds."""
+    q, hdg = _path_samples(path, step)
+    driven = _on_carriageway(ref, q, hdg, tol)
+    built = driven & _on_carriageway(gen, q, hdg, tol)
     driven_m, built_m = float(driven.sum()) * step, float(built.sum()) * step
     return {"share": built_m / driven_m if driven_m > 0 else 0.0, "driven_m": driven_m, "built_m": built_m}
+
+
+def path_on_map(map_path: Path, path: np.ndarray, cfg: EvaluationConfig) -> dict[str, float]:
+    """How much of a drive's own path (x, y in the map's frame) lies on the map's driving carriageways of
+    its direction: a build's coverage of its drive, without a reference (U-turns and junctions the
+    map does not model count as off the map)."""
+    q, hdg = _path_samples(np.asarray(path, dtype=np.float64)[:, :2], cfg.sample_step_m)
+    on = _on_carriageway(carriageways(_load(Path(map_path)), cfg.sample_step_m), q, hdg,
+                         math.radians(cfg.heading_tolerance_deg))
+    path_m, on_m = float(len(q)) * cfg.sample_step_m, float(on.sum()) * cfg.sample_step_m
+    return {"share": on_m / path_m if path_m > 0 else 0.0, "path_m": path_m, "on_map_m": on_m}
 
 
 def _lane_width(gen: Carriageways, ref: Carriageways, matched: np.ndarray, v_c: np.ndarray, min_w: float

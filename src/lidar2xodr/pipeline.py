@@ -204,6 +204,11 @@ class BuildPipeline:
             "scans": int(len(cloud.planes.times)),
             "export": summary.__dict__ if hasattr(summary, "__dict__") else str(summary),
         }
+        ego = self._ego(cloud)
+        if ego is not None and len(ego) >= 2:
+            from lidar2xodr.evaluation import path_on_map
+
+            result.summary["drive_on_map"] = path_on_map(staged(self.out), ego.positions, self.config.evaluation)
         if self.fusion is not None:
             result.summary["fusion"] = [d.__dict__ for d in self.fusion.drives]
             result.summary["fusion_lines"] = [d.line() for d in self.fusion.drives]
@@ -361,6 +366,10 @@ def print_summary(result: BuildResult, console: Console) -> None:
     table = Table(title=escape(f"built {result.map_path}"), show_header=False)
     s = result.summary
     table.add_row("length", f"{s.get('length_m', 0.0):.0f} m")
+    on_map = s.get("drive_on_map")
+    if on_map:
+        table.add_row("drive on the map", f"{100 * on_map['share']:.0f} % of its {on_map['path_m']:.0f} m path "
+                      "(on a built lane of its direction)")
     table.add_row("lanes per section", ", ".join(str(n) for n in s.get("sections", [])))
     table.add_row("marking points / scans", f"{s.get('marking_points', 0):,} / {s.get('scans', 0):,}")
     for k, line in enumerate(s.get("fusion_lines", [])):
