@@ -459,3 +459,22 @@ def test_map_index_on_curved_superelevated_roads(shared_data: Path, name: str) -
             assert np.abs(got.z[same_road] - p[same_road, 2]).max() < 0.03
             checked += int(same_road.sum())
     assert checked > 100
+
+
+def test_tracks_smoothed_on_worker_processes_are_the_same_bytes() -> None:
+    """The GCV smoothing of every track runs on a process pool when there are enough tracks: each
+    track alone, taken back in order, so one worker or two give the same arrays."""
+    from lidar2xodr.tracks import _PARALLEL_TRACKS, _smooth_all
+
+    rng = np.random.default_rng(4)
+    items = []
+    for k in range(_PARALLEL_TRACKS + 2):
+        t = np.sort(rng.uniform(0.0, 10.0, 60 + k))
+        xyz = np.stack([25.0 * t, 0.3 * np.sin(t), np.full(len(t), np.nan if k == 1 else 0.5)], axis=1)
+        items.append((t, xyz + rng.normal(0.0, 0.05, xyz.shape)))
+    serial = _smooth_all(items, 1)
+    pooled = _smooth_all(items, 2)
+    assert len(pooled) == len(items)
+    for (s_xyz, s_vel), (p_xyz, p_vel) in zip(serial, pooled, strict=True):
+        assert s_xyz.tobytes() == p_xyz.tobytes() and s_vel.tobytes() == p_vel.tobytes()
+    assert not np.allclose(serial[0][0][:, 0], items[0][1][:, 0]), "the tracks were smoothed"

@@ -200,7 +200,12 @@ def load_tracks(
     ego = ego if ego is not None else own_ego
     counts: Counter[str] = Counter(detections=len(det.time))
     det = _to_world(det, ego, counts)
-    tracks = _build_tracks(det, ego, scfg, counts, warnings)
+    workers = 1
+    if isinstance(cfg, Config):
+        from lidar2xodr.extraction import worker_count
+
+        workers = worker_count(cfg.extraction)
+    tracks = _build_tracks(det, ego, scfg, counts, warnings, workers)
     dropped = counts["dropped_short"] + counts["dropped_jumpy"]
     _warn_counts(det.source, counts, warnings)
     return TrackSet(tracks=tracks, source=det.source, dropped=dropped, smoothed=counts["smoothed"],
@@ -707,9 +712,30 @@ def categorise(raw: list[str], length: float, class_map: dict[str, str]) -> tupl
     return ("truck" if math.isfinite(length) and length > 7.0 else "car"), False
 
 
+def _smooth_task(_job: Any, t: np.ndarray, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return smooth_track(t, xyz)
+
+
+_PARALLEL_TRACKS = 4  # fewer tracks are smoothed here: a pool would cost more than it saves
+
+
+def _smooth_all(items: list[tuple[np.ndarray, np.ndarray]], workers: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """`smooth_track` of every (times, xyz), in order; on `workers` processes when there are enough
+    tracks (the GCV search of scipy's smoothing spline is most of a build's lanes stage on a busy
+    motorway: 4.7 of 14.5 s for 32 tracks on a 3 km drive). Each track is smoothed alone, so the
+    result is the same bytes on any number of workers."""
+    if workers <= 1 or len(items) < _PARALLEL_TRACKS:
+        return [smooth_track(t, xyz) for t, xyz in items]
+    from lidar2xodr.scheduler import task_runner
+
+    with task_runner(None, min(workers, len(items)), None) as submit:
+        futures = [submit(_smooth_task, t, xyz) for t, xyz in items]
+        return [f.result() for f in futures]
+
+
 def _build_tracks(det: _Detections, ego: Trajectory | None, cfg: ScenarioConfig, counts: Counter[str],
-                  warnings: list[str]) -> list[Track]:
-    tracks: list[Track] = []
+                  warnings: list[str], workers: int = 1) -> list[Track]:
+    pending: list[tuple[str, str, np.ndarray, np.ndarray, np.ndarray, list[str]]] = []
     unknown: Counter[str] = Counter()
     for gid, rows in _group_rows(det, ego, cfg, counts):
         t_file = det.time[rows]
@@ -739,15 +765,18 @@ def _build_tracks(det: _Detections, ego: Trajectory | None, cfg: ScenarioConfig,
             xyz = det.xyz[r]
             if np.isfinite(xyz[:, 2]).any():
                 xyz[:, 2] = np.where(np.isfinite(xyz[:, 2]), xyz[:, 2], np.nanmedian(xyz[:, 2])) - box[2] / 2
-            smooth, vel = smooth_track(det.time[r], xyz)
-            moved = np.linalg.norm(np.nan_to_num(smooth - xyz), axis=1)
-            if moved.max() > _SMOOTHED_M:
-                counts["smoothed"] += 1
-            tracks.append(Track(
-                id=tid, category=category, dims=box, times=det.time[r].copy(), xyz=smooth,
-                yaw=_heading(vel, det.yaw[r], cfg.heading_min_speed_mps),
-                speed=np.hypot(vel[:, 0], vel[:, 1]), raw_class=Counter(raw).most_common(1)[0][0],
-            ))
+            pending.append((tid, category, box, r, xyz, raw))
+    smoothed = _smooth_all([(det.time[r], xyz) for _, _, _, r, xyz, _ in pending], workers)
+    tracks: list[Track] = []
+    for (tid, category, box, r, xyz, raw), (smooth, vel) in zip(pending, smoothed, strict=True):
+        moved = np.linalg.norm(np.nan_to_num(smooth - xyz), axis=1)
+        if moved.max() > _SMOOTHED_M:
+            counts["smoothed"] += 1
+        tracks.append(Track(
+            id=tid, category=category, dims=box, times=det.time[r].copy(), xyz=smooth,
+            yaw=_heading(vel, det.yaw[r], cfg.heading_min_speed_mps),
+            speed=np.hypot(vel[:, 0], vel[:, 1]), raw_class=Counter(raw).most_common(1)[0][0],
+        ))
     counts["tracks"] = len(tracks)
     for c, n in sorted(unknown.items()):
         counts["unknown_class_samples"] += n
