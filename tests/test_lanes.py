@@ -666,3 +666,28 @@ def test_a_short_piece_beyond_a_long_gap_does_not_carry_a_line_on() -> None:
     piece = np.concatenate([k, np.repeat(np.arange(340, 346), 5)])  # as dense as the line: the line itself
     curve, _, _ = _robust_curve(piece, np.full(len(piece), -5.0), 400, 1e4)
     assert np.isfinite(curve[:346]).all()
+
+
+def test_a_broken_line_is_fitted_from_its_first_dash_where_the_frame_runs_at_an_angle() -> None:
+    """Where the frame runs at an angle to the road (its first stretch, here 2 deg fading to 0 over
+    100 m), every line's offset drifts alike. The broken line's first dash, judged against the line
+    continued parallel to the frame, sat 0.3-0.6 m off and was dropped, which made the next dash the
+    end, and so on: the line began 72 m late. Continued parallel to the other lines, it begins at its
+    first dash and follows the drift."""
+    from lidar2xodr.lanes.tracks import _fit_boundaries
+
+    rng = np.random.default_rng(5)
+    m = 400
+
+    def drift(k: np.ndarray) -> np.ndarray:
+        return 0.035 * np.clip(100 - k, 0, None) ** 2 / 200
+
+    solid = np.repeat(np.arange(0, 380), 5)
+    dashes = np.concatenate([np.repeat(np.arange(a, a + 6), 5) for a in range(0, 380, 18)])
+    k = np.concatenate([solid, dashes])
+    label = np.concatenate([np.zeros(len(solid), dtype=int), np.ones(len(dashes), dtype=int)])
+    t = np.where(label == 0, 2.0, -1.5) + drift(k) + rng.normal(0, 0.02, len(k))
+    fit = _fit_boundaries(k, t, label, np.ones(len(k), dtype=bool), 2, m, 1e4, 20, 0.3, end_dash_drift=True)
+    broken = np.flatnonzero(np.isfinite(fit.t[1]))
+    assert broken[0] == 0 and broken[-1] == dashes.max()
+    assert np.max(np.abs(fit.t[1][broken] - (-1.5 + drift(broken)))) < 0.05

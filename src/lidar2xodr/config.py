@@ -229,6 +229,10 @@ class LanesConfig(_Section):
     stable_lane_slope: float = Field(0.02, gt=0, le=1, description="ours: a lane is stable where its width changes "
                                                        "less than this per metre; every lane needs a stable stretch "
                                                        "of min_section_length_m")
+    end_dash_drift: bool = Field(False, description="ours, experimental (off: BENCHMARKS.md): a line's end dash is "
+                                 "judged against the line continued with the other lines' common drift along the "
+                                 "frame, not parallel to the frame; builds the drive's first ~100 m where the frame "
+                                 "runs at an angle to the road, but 12 of 112 sweep cases get worse")
     max_taper_length_m: float = Field(300.0, gt=0, description="ours: longest lane taper followed back to zero width")
     taper_min_length_m: float = Field(20.0, gt=0, description="ours: a straight line converging onto (diverging from) "
                                                   "the carriageway's right edge makes an entry (exit) lane only when "

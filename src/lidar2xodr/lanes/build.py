@@ -100,7 +100,7 @@ def _build_on_frame(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lanes
         for _ in range(3):
             use = np.where(off, -1, label)
             fit = _fit_boundaries(k_pt, t_pt, use, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)),
-                                  cfg.same_line_tolerance_m, double)
+                                  cfg.same_line_tolerance_m, double, cfg.end_dash_drift)
             root = _continuations(fit.t, int(round(cfg.line_join_gap_m / step)), cfg.same_line_tolerance_m,
                                   int(round(10.0 / step)))
             if np.any(root != np.arange(n_sl)):
@@ -108,7 +108,7 @@ def _build_on_frame(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lanes
                 use = np.where(off, -1, label)
                 superline = root[superline]
                 fit = _fit_boundaries(k_pt, t_pt, use, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)),
-                                      cfg.same_line_tolerance_m, double)
+                                      cfg.same_line_tolerance_m, double, cfg.end_dash_drift)
             crossing = _crossing_points(fit.t, use, k_pt, t_pt, cfg.assign_distance_m)
             short = np.isfinite(fit.t).sum(axis=1) * step < cfg.min_section_length_m
             n_short = int(np.sum(short & np.isfinite(fit.t).any(axis=1)))

@@ -15,14 +15,16 @@ _DOUBLE_SPACING_SPREAD_M = 0.1  # a double line's two lines keep their spacing w
 
 
 def _robust_curve(
-    k: np.ndarray, t: np.ndarray, n: int, lam: float, iters: int = 3
+    k: np.ndarray, t: np.ndarray, n: int, lam: float, iters: int = 3, drift: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Robust t(s) on stations: Whittaker over the points' span with Tukey weights; NaN outside.
 
     Short islands of points (at most 10 m: a dash, a blob) that sit off the curve fitted without
     them (local refit over +-80 m) are dropped: a blob in a gap or an occluded stretch would
-    otherwise bend the line towards it. Returns the curve, the points' final weights and which
-    stations are observed (3 points or more, in runs of 3 stations or more).
+    otherwise bend the line towards it. Beyond the refit's end the line is continued parallel to the
+    frame, or, with `drift` (the lines' common offset along the stations, `_common_drift`), parallel
+    to the other lines. Returns the curve, the points' final weights and which stations are observed
+    (3 points or more, in runs of 3 stations or more).
     """
     out = np.full(n, np.nan)
     w_pt = np.ones(len(t))
@@ -54,7 +56,10 @@ def _robust_curve(
             continue
         z = _whittaker_points(k[near] - lo, t[near], w_pt[near], hi - lo, lam)
         span = np.flatnonzero(np.isfinite(z))
-        pred = z[np.clip(k[island] - lo, span[0], span[-1])]
+        edge = np.clip(k[island] - lo, span[0], span[-1])
+        pred = z[edge]
+        if drift is not None:
+            pred = pred + drift[k[island]] - drift[edge + lo]
         if abs(float(np.median(t[island] - pred))) > max(0.2, 3.0 * scale):
             w_pt[island] = 0.0
             observed[a:b] = False
@@ -68,7 +73,8 @@ def _robust_curve(
 
 
 def _refit_double(curve: np.ndarray, k: np.ndarray, t: np.ndarray, k_free: np.ndarray, t_free: np.ndarray, m: int,
-                  lam: float, double: tuple[float, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+                  lam: float, double: tuple[float, int], drift: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """A line's `_robust_curve` again where its points (k, t), with the unlabelled points (sorted by
     station) within `double[0]` of its curve, form a double line (`_fold_double_lines`): the second
     line's points lie farther from the first than points are labelled to it, so they are not the
@@ -84,7 +90,7 @@ def _refit_double(curve: np.ndarray, k: np.ndarray, t: np.ndarray, k_free: np.nd
     if not folded.any():
         return None
     keep = (np.arange(len(k_all)) < len(k)) | folded
-    return _robust_curve(k_all[keep], t_fold[keep], m, lam)
+    return _robust_curve(k_all[keep], t_fold[keep], m, lam, drift=drift)
 
 
 def _two_modes(r: np.ndarray) -> tuple[float, float, np.ndarray] | None:
@@ -212,10 +218,13 @@ def _fit_boundaries(
     gap: int,
     parallel_m: float,
     double: tuple[float, int] = (0.0, 1),
+    end_dash_drift: bool = False,
 ) -> _Fit:
     """Every labelled line's t(s) (`_robust_curve` of its points, double lines folded onto their
     midpoint: `double` = (largest spacing, block stations), see `_fold_double_lines`), bridged across
-    unobserved stretches."""
+    unobserved stretches. With `end_dash_drift` (`LanesConfig.end_dash_drift`), a line whose end dash
+    was dropped is fitted again, its end dashes judged against the line continued with the lines'
+    common drift (`_common_drift`)."""
     out = np.full((n_sl, m), np.nan)
     support = np.zeros(n_sl)
     use = (label >= 0) & inside
@@ -226,6 +235,7 @@ def _fit_boundaries(
     by_k = np.argsort(k[free], kind="stable")
     k_free, t_free = k[free][by_k], t[free][by_k]
     observed = np.zeros((n_sl, m), dtype=bool)
+    cut_end: list[int] = []
     for b in range(n_sl):
         sl = slice(bounds[b], bounds[b + 1])
         if bounds[b + 1] - bounds[b] < 10:
@@ -235,8 +245,38 @@ def _fit_boundaries(
         if again is not None:
             out[b], w, observed[b] = again
         support[b] = float(w.sum())
+        if end_dash_drift and _dropped_beyond_ends(kk[sl], out[b]):
+            cut_end.append(b)
+    if cut_end:
+        drift = _common_drift(out)
+        for b in cut_end:
+            sl = slice(bounds[b], bounds[b + 1])
+            out[b], w, observed[b] = _robust_curve(kk[sl], tt[sl], m, lam, drift=drift)
+            again = _refit_double(out[b], kk[sl], tt[sl], k_free, t_free, m, lam, double, drift)
+            if again is not None:
+                out[b], w, observed[b] = again
+            support[b] = float(w.sum())
     _bridge_gaps(out, observed, gap, parallel_m)
     return _Fit(out, support)
+
+
+def _dropped_beyond_ends(k: np.ndarray, curve: np.ndarray) -> bool:
+    """Whether some of a line's points lie before or after its fitted curve (an end dash was dropped)."""
+    fin = np.flatnonzero(np.isfinite(curve))
+    return len(fin) > 0 and bool(np.any((k < fin[0]) | (k > fin[-1])))
+
+
+def _common_drift(curves: np.ndarray) -> np.ndarray:
+    """The lines' common offset along the stations: the median slope of the fitted lines at each
+    station, summed (0 where no line is fitted). Where the frame runs at an angle to the road (its
+    first stretch, built from fewer lines), every line's offset drifts alike; a line continued
+    parallel to the frame would leave its own next dash behind, and each dropped dash makes the next
+    one the line's end."""
+    slope = np.diff(curves, axis=1)
+    has = np.isfinite(slope).any(axis=0)
+    g = np.zeros(slope.shape[1])
+    g[has] = np.nanmedian(slope[:, has], axis=0)
+    return np.concatenate([[0.0], np.cumsum(g)])
 
 
 def _continuations(t: np.ndarray, gap_max: int, tol: float, probe: int) -> np.ndarray:
