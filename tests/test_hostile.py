@@ -939,3 +939,29 @@ def test_an_output_onto_a_device_or_pipe_is_refused_and_left_as_it_is(kind: str,
     hostile(["compare", assets["map"], assets["map"], "--json", target], tmp_path, names=target)
     mode = target.lstat().st_mode
     assert stat.S_ISFIFO(mode) if kind == "pipe" else stat.S_ISCHR(mode)
+
+
+def test_what_a_library_prints_while_a_sigterm_unwinds_it_is_not_shown(capsys: pytest.CaptureFixture[str]) -> None:
+    """CI: the SIGTERM hit `check` while scipy was executing generated code; scipy's decorator printed
+    "Error in generated code:" and the function's source before re-raising, so the user saw four lines
+    instead of one. What is written to stderr after the signal is dropped; the command's own line stays."""
+    import typer
+
+    from lidar2xodr.cli import _clean_errors
+
+    def command() -> None:
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)
+        except BaseException:
+            print("Error in generated code:", file=sys.stderr)
+            print("def convex_hull_plot_2d(hull, ax):", file=sys.stderr)
+            raise
+
+    with pytest.raises(typer.Exit) as stop:
+        _clean_errors(command)()
+    assert stop.value.exit_code == 143
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and "terminated" in err[0], err
+    print("after the command", file=sys.stderr)
+    assert "after the command" in capsys.readouterr().err

@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import functools
+import io
 import os
 import signal
 import subprocess
@@ -37,6 +38,7 @@ class Terminated(KeyboardInterrupt):
 
 
 _SIGNALLED: list[int | None] = [None]  # the SIGTERM/SIGINT that arrived in the current `terminate_as_interrupt` block
+_STDERR: list[Any] = [None]  # the real sys.stderr while it is muted after a signal
 _RECEIVED: list[int | None] = [None]  # the one that arrived in the latest block, kept after it
 
 
@@ -53,8 +55,25 @@ def _on_signal(signum: int, frame: FrameType | None) -> None:
     the killed children make the waiting thread raise instead (`raise_if_signalled`).
     """
     _SIGNALLED[0] = _RECEIVED[0] = signum
+    _mute_stderr()
     kill_children()
     raise _interrupt(signum)
+
+
+def _mute_stderr() -> None:
+    """Drop what is written to sys.stderr until the block ends: code the interrupt unwinds may print
+    before it re-raises (CI: scipy's decorator printed "Error in generated code:" and the source of
+    the function it was making), and the command's own line, printed after the block, is the one
+    line the user sees."""
+    if _STDERR[0] is None:
+        _STDERR[0] = sys.stderr
+        sys.stderr = io.StringIO()
+
+
+def _unmute_stderr() -> None:
+    if _STDERR[0] is not None:
+        sys.stderr = _STDERR[0]
+        _STDERR[0] = None
 
 
 def terminated() -> bool:
@@ -101,6 +120,7 @@ def terminate_as_interrupt() -> Iterator[None]:
             signal.signal(signum, handler)
         sys.unraisablehook = hook
         _SIGNALLED[0] = None
+        _unmute_stderr()
 
 
 def die_with_parent(parent_pid: int | None = None) -> None:
