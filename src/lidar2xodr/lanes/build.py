@@ -181,9 +181,11 @@ def _build_on_frame(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lanes
 
 def _centre_offsets(structure: _Structure, cfg: LanesConfig, step: float) -> tuple[np.ndarray, np.ndarray]:
     """Offset of the road centre at each station (NaN-free, smoothed) and where it is measured."""
-    valid = structure.on.sum(axis=0) >= 2
-    top = np.max(np.where(structure.on, structure.t, -np.inf), axis=0)
-    bottom = np.min(np.where(structure.on, structure.t, np.inf), axis=0)
+    rows = np.flatnonzero(structure.on.any(axis=1))
+    on, t = structure.on[rows], structure.t[rows]
+    valid = on.sum(axis=0) >= 2
+    top = np.max(np.where(on, t, -np.inf), axis=0, initial=-np.inf)
+    bottom = np.min(np.where(on, t, np.inf), axis=0, initial=np.inf)
     centre = np.where(valid, 0.5 * (np.where(valid, top, 0.0) + np.where(valid, bottom, 0.0)), 0.0)
     w = valid.astype(np.float64)
     if w.sum() == 0:

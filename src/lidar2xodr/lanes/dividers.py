@@ -58,12 +58,17 @@ def _ego_track(frame: Frame, ego: np.ndarray | None, model: LaneModel) -> _EgoTr
 
 def _divided_left(t_fit: np.ndarray, on: np.ndarray, solid: np.ndarray) -> np.ndarray:
     """Stations where another carriageway lies left of the kept one beyond a median: the nearest
-    measured line left of the leftmost kept line is solid (its left edge line) and has a line beyond it."""
+    measured line left of the leftmost kept line is solid (its left edge line) and has a line beyond it.
+    Only rows with a kept or a fitted station are looked at: most of the (lines, stations) array is empty."""
+    rows_on = np.flatnonzero(on.any(axis=1))
+    rows = np.flatnonzero(np.isfinite(t_fit).any(axis=1))
     with np.errstate(invalid="ignore"):
-        top = np.max(np.where(on, t_fit, -np.inf), axis=0)
-        beyond = ~on & np.isfinite(t_fit) & (t_fit > top[None, :] + 0.5)
+        top = np.max(np.where(on[rows_on], t_fit[rows_on], -np.inf), axis=0, initial=-np.inf)
+        beyond = ~on[rows] & np.isfinite(t_fit[rows]) & (t_fit[rows] > top[None, :] + 0.5)
     count = beyond.sum(axis=0)
-    nearest = np.argmin(np.where(beyond, t_fit, np.inf), axis=0)
+    if len(rows) == 0:
+        return np.zeros(t_fit.shape[1], dtype=bool)
+    nearest = rows[np.argmin(np.where(beyond, t_fit[rows], np.inf), axis=0)]
     return (count >= 2) & solid[nearest]
 
 

@@ -133,9 +133,12 @@ def _taper_lanes(pts: _Points, structure: _Structure, side: int, step: float,
     """
     on, t = structure.on, structure.t
     n_rows, m = on.shape
-    valid = on.sum(axis=0) >= 2
-    key = np.where(on, side * np.where(on, t, 0.0), -np.inf)
-    outer_row = np.argmax(key, axis=0)
+    rows_on = np.flatnonzero(on.any(axis=1))
+    on_r, t_r = on[rows_on], t[rows_on]
+    valid = on_r.sum(axis=0) >= 2
+    key = np.where(on_r, side * np.where(on_r, t_r, 0.0), -np.inf)
+    outer_row = rows_on[np.argmax(key, axis=0)] if len(rows_on) else np.zeros(m, dtype=np.int64)
+    outer_row[~on_r.any(axis=0)] = 0
     edge = t[outer_row, np.arange(m)]
     k_all = pts.k
     use = pts.inside & valid[k_all]
@@ -148,6 +151,8 @@ def _taper_lanes(pts: _Points, structure: _Structure, side: int, step: float,
     found: list[tuple[int, _Taper]] = []
     notes: list[str] = []
     seen_lines: set[tuple[int, int]] = set()
+    by_k: np.ndarray | None = None
+    k_sorted = k_all
     for a, b, lo, hi in _straight_lines(s, w, k, step, cfg):
         run = _line_run(s, w, k, (a, b), (lo, hi), step, cfg)
         for _ in range(20):
@@ -199,13 +204,17 @@ def _taper_lanes(pts: _Points, structure: _Structure, side: int, step: float,
         row_t = np.full(m, np.nan)
         row_t[kk] = edge[kk] + side * width
         in_frame = np.polyfit(s[run], pts.t[sel[run]], 1)
-        line_w = a + b * pts.s
-        on_line = (np.abs(pts.t - np.polyval(in_frame, pts.s)) < tol) | (
-            use & (line_w > tol) & (np.abs(w_all - line_w) < tol))
         ext = int(round(cfg.taper_meet_width_m / abs(b) / step))
         lo_k, hi_k = (k0, k1 + ext) if narrow_last else (k0 - ext, k1)
-        near = pts.inside & (pts.k >= lo_k) & (pts.k <= hi_k) & on_line
-        taper = _Taper(-1, int(rows[0]), k0, k1, row_t, np.flatnonzero(near), narrow_last, side,
+        if by_k is None:
+            by_k = np.argsort(k_all, kind="stable")
+            k_sorted = k_all[by_k]
+        idx = by_k[np.searchsorted(k_sorted, lo_k, "left") : np.searchsorted(k_sorted, hi_k, "right")]
+        line_w = a + b * pts.s[idx]
+        on_line = (np.abs(pts.t[idx] - np.polyval(in_frame, pts.s[idx])) < tol) | (
+            use[idx] & (line_w > tol) & (np.abs(w_all[idx] - line_w) < tol))
+        near = np.sort(idx[pts.inside[idx] & on_line])
+        taper = _Taper(-1, int(rows[0]), k0, k1, row_t, near, narrow_last, side,
                        float(a + b * k_far * step), float(np.degrees(np.arctan(abs(b)))))
         found.append((len(ks), taper))
     kept: list[_Taper] = []

@@ -236,10 +236,12 @@ def _fit_boundaries(
     k_free, t_free = k[free][by_k], t[free][by_k]
     observed = np.zeros((n_sl, m), dtype=bool)
     cut_end: list[int] = []
+    fitted: list[int] = []
     for b in range(n_sl):
         sl = slice(bounds[b], bounds[b + 1])
         if bounds[b + 1] - bounds[b] < 10:
             continue
+        fitted.append(b)
         out[b], w, observed[b] = _robust_curve(kk[sl], tt[sl], m, lam)
         again = _refit_double(out[b], kk[sl], tt[sl], k_free, t_free, m, lam, double)
         if again is not None:
@@ -256,7 +258,7 @@ def _fit_boundaries(
             if again is not None:
                 out[b], w, observed[b] = again
             support[b] = float(w.sum())
-    _bridge_gaps(out, observed, gap, parallel_m)
+    _bridge_gaps(out, observed, gap, parallel_m, np.array(fitted, dtype=np.int64))
     return _Fit(out, support)
 
 
@@ -350,24 +352,36 @@ def _gap_mismatch(t: np.ndarray, fin: np.ndarray, a: int, b: int, ea: int, sb: i
     return float(abs(np.polyval(fa, mid - ea) - np.polyval(fb, mid - sb)))
 
 
-def _bridge_gaps(t: np.ndarray, observed: np.ndarray, gap: int, parallel_m: float) -> None:
+def _finite_spans(t: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each row's first and last finite column (m and -1 for a row with none); rows not in `rows` have none."""
+    first, last = np.full(len(t), t.shape[1]), np.full(len(t), -1)
+    if t.shape[1] == 0 or len(rows) == 0:
+        return first, last
+    fin = np.isfinite(t[rows])
+    has = fin.any(axis=1)
+    first[rows] = np.where(has, fin.argmax(axis=1), t.shape[1])
+    last[rows] = np.where(has, t.shape[1] - 1 - fin[:, ::-1].argmax(axis=1), -1)
+    return first, last
+
+
+def _bridge_gaps(t: np.ndarray, observed: np.ndarray, gap: int, parallel_m: float,
+                 rows: np.ndarray | None = None) -> None:
     """Across unobserved stretches longer than `gap` stations a line keeps its lane width to the
     neighbour best observed there (interpolated between the ends), instead of a straight chord in
     the frame, which bends wherever the frame does. Neighbours whose offset to the line changes
     least across the gap (in steps of `parallel_m`) come first: one that diverges from the line
     there (an exit lane's edge leaving where the edge line turns into a broken one) would carry
-    the bridge out with it."""
+    the bridge out with it. `rows`: the rows that may hold a line (default all)."""
+    first, last = _finite_spans(t, np.arange(len(t)) if rows is None else rows)
     for b in range(len(t)):
-        fin = np.flatnonzero(np.isfinite(t[b]))
-        if len(fin) == 0:
+        if last[b] < 0:
             continue
-        inner = np.zeros(t.shape[1], dtype=bool)
-        inner[fin[0] : fin[-1] + 1] = True
-        for g0, g1 in _runs(inner & ~observed[b]):
+        for r0, r1 in _runs(~observed[b, first[b] : last[b] + 1]):
+            g0, g1 = first[b] + r0, first[b] + r1
             if g1 - g0 < gap or g0 == 0 or g1 >= t.shape[1]:
                 continue
             best, best_key = None, None
-            for nb in range(len(t)):
+            for nb in np.flatnonzero((first <= g0 - 1) & (last >= g1)):
                 if nb == b or not np.all(np.isfinite(t[nb, g0 - 1 : g1 + 1])):
                     continue
                 drift = abs(float((t[b, g1] - t[nb, g1]) - (t[b, g0 - 1] - t[nb, g0 - 1])))
@@ -424,10 +438,19 @@ class _Observed:
 def _crossing_points(t_fit: np.ndarray, label: np.ndarray, k: np.ndarray, t: np.ndarray, tol: float) -> np.ndarray:
     """Points on a fitted line that runs across the road there (offset changing by more than
     `_ALONG_SLOPE` per station: a ramp, a crossing line), not along it."""
-    slope = np.abs(np.gradient(t_fit, axis=1)) if t_fit.shape[1] > 1 else np.zeros_like(t_fit)
     row = np.maximum(label, 0)
     with np.errstate(invalid="ignore"):
-        return (label >= 0) & (np.abs(t - t_fit[row, k]) <= tol) & (slope[row, k] > _ALONG_SLOPE)
+        return (label >= 0) & (np.abs(t - t_fit[row, k]) <= tol) & (_slope_at(t_fit, row, k) > _ALONG_SLOPE)
+
+
+def _slope_at(t: np.ndarray, row: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """|np.gradient(t, axis=1)| at (row, k) only, the same numbers without the whole (rows, stations) array."""
+    m = t.shape[1]
+    if m < 2:
+        return np.zeros(len(k))
+    lo, hi = np.maximum(k - 1, 0), np.minimum(k + 1, m - 1)
+    d = t[row, hi] - t[row, lo]
+    return np.abs(np.where((k > 0) & (k < m - 1), d / 2.0, d))
 
 
 def _observed(k: np.ndarray, t: np.ndarray, free: np.ndarray, m: int, block: int = 10,

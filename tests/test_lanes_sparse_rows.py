@@ -1,0 +1,109 @@
+"""The lanes stage's (lines, stations) arrays are almost empty on a long drive (a 20 km corridor: 3557
+rows x 20,000 stations, 0.1 % finite). The helpers that look only at the rows and stations that hold
+something must give exactly what the plain whole-array formulas give (issue #14)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lidar2xodr.lanes.dividers import _divided_left
+from lidar2xodr.lanes.tracks import _bridge_gaps, _slope_at
+
+
+def _sparse_lines(rng: np.random.Generator, n: int, m: int) -> np.ndarray:
+    """n rows of short finite runs in NaN, some rows empty, with gaps inside some runs."""
+    t = np.full((n, m), np.nan)
+    for b in range(n):
+        if rng.random() < 0.3:
+            continue
+        a = int(rng.integers(0, m - 1))
+        e = int(rng.integers(a + 1, m + 1))
+        t[b, a:e] = rng.normal(0.0, 5.0) + np.cumsum(rng.normal(0.0, 0.05, e - a))
+        if e - a > 10 and rng.random() < 0.3:
+            h = int(rng.integers(a + 1, e - 1))
+            t[b, h : h + 3] = np.nan
+    return t
+
+
+@pytest.mark.parametrize("m", [1, 2, 3, 50])
+def test_slope_at_points_is_np_gradient_there(m: int) -> None:
+    rng = np.random.default_rng(m)
+    t = _sparse_lines(rng, 12, m) if m > 1 else rng.normal(size=(12, 1))
+    row, k = rng.integers(0, 12, 500), rng.integers(0, m, 500)
+    full = np.abs(np.gradient(t, axis=1)) if m > 1 else np.zeros_like(t)
+    assert np.array_equal(_slope_at(t, row, k), full[row, k], equal_nan=True)
+
+
+def _divided_left_dense(t_fit: np.ndarray, on: np.ndarray, solid: np.ndarray) -> np.ndarray:
+    with np.errstate(invalid="ignore"):
+        top = np.max(np.where(on, t_fit, -np.inf), axis=0)
+        beyond = ~on & np.isfinite(t_fit) & (t_fit > top[None, :] + 0.5)
+    nearest = np.argmin(np.where(beyond, t_fit, np.inf), axis=0)
+    return (beyond.sum(axis=0) >= 2) & solid[nearest]
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_divided_left_on_the_filled_rows_is_the_whole_array_answer(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    t = _sparse_lines(rng, 40, 200)
+    on = np.isfinite(t) & (rng.random(t.shape) < 0.6) & (t < 2.0)
+    solid = rng.random(40) < 0.5
+    got = _divided_left(t, on, solid)
+    assert np.array_equal(got, _divided_left_dense(t, on, solid))
+    assert got.any() and not got.all()
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_bridging_only_the_fitted_rows_changes_nothing(seed: int) -> None:
+    """Rows named as fitted (all that hold a line, some empty ones too) bridge exactly as all rows do."""
+    rng = np.random.default_rng(100 + seed)
+    t = _sparse_lines(rng, 30, 400)
+    observed = np.isfinite(t) & (rng.random(t.shape) < 0.9)
+    for b in range(len(t)):
+        if rng.random() < 0.5:
+            fin = np.flatnonzero(np.isfinite(t[b]))
+            if len(fin) > 60:
+                observed[b, fin[10] : fin[10] + 40] = False
+    holding = np.flatnonzero(np.isfinite(t).any(axis=1))
+    rows = np.union1d(holding, rng.choice(len(t), 5, replace=False))
+    a, b, c = t.copy(), t.copy(), t.copy()
+    _bridge_gaps_dense(a, observed, 20, 0.5)
+    _bridge_gaps(b, observed, 20, 0.5)
+    _bridge_gaps(c, observed, 20, 0.5, rows)
+    assert np.array_equal(a, b, equal_nan=True)
+    assert np.array_equal(a, c, equal_nan=True)
+    assert not np.array_equal(a, t, equal_nan=True)
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1), strict=False))
+
+
+def _bridge_gaps_dense(t: np.ndarray, observed: np.ndarray, gap: int, parallel_m: float) -> None:
+    """The bridging as it was written before: every row against every row."""
+    for b in range(len(t)):
+        fin = np.flatnonzero(np.isfinite(t[b]))
+        if len(fin) == 0:
+            continue
+        inner = np.zeros(t.shape[1], dtype=bool)
+        inner[fin[0] : fin[-1] + 1] = True
+        for g0, g1 in _runs(inner & ~observed[b]):
+            if g1 - g0 < gap or g0 == 0 or g1 >= t.shape[1]:
+                continue
+            best, best_key = None, None
+            for nb in range(len(t)):
+                if nb == b or not np.all(np.isfinite(t[nb, g0 - 1 : g1 + 1])):
+                    continue
+                drift = abs(float((t[b, g1] - t[nb, g1]) - (t[b, g0 - 1] - t[nb, g0 - 1])))
+                share = float(observed[nb, g0:g1].mean())
+                steps = int(drift / parallel_m) if np.isfinite(drift) else 0
+                key = (-steps, share, -abs(float(t[nb, g0] - t[b, g0])))
+                if share >= 0.25 and (best_key is None or key > best_key):
+                    best, best_key = nb, key
+            if best is None:
+                continue
+            w0, w1 = t[b, g0 - 1] - t[best, g0 - 1], t[b, g1] - t[best, g1]
+            f = (np.arange(g0, g1) - (g0 - 1)) / (g1 - g0 + 1)
+            t[b, g0:g1] = t[best, g0:g1] + w0 + (w1 - w0) * f
