@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from lidar2xodr.lanes.dividers import _divided_left
-from lidar2xodr.lanes.tracks import _bridge_gaps, _slope_at
+from lidar2xodr.lanes.tracks import _bridge_gaps, _robust_curve, _robust_curve_window, _slope_at
 
 
 def _sparse_lines(rng: np.random.Generator, n: int, m: int) -> np.ndarray:
@@ -107,3 +107,43 @@ def _bridge_gaps_dense(t: np.ndarray, observed: np.ndarray, gap: int, parallel_m
             w0, w1 = t[b, g0 - 1] - t[best, g0 - 1], t[b, g1] - t[best, g1]
             f = (np.arange(g0, g1) - (g0 - 1)) / (g1 - g0 + 1)
             t[b, g0:g1] = t[best, g0:g1] + w0 + (w1 - w0) * f
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_a_line_fitted_on_the_stations_around_it_is_the_line_fitted_on_all(seed: int) -> None:
+    """Dashes, a blob off the line, a piece beyond a gap at either end, near the drive's ends or in
+    its middle, with and without a common drift: the windowed fit equals the fit over all stations."""
+    rng = np.random.default_rng(seed)
+    n = 3000
+    a = int(rng.choice([5, 400, 1500]))
+    length = int(rng.integers(60, 400))
+    k = np.concatenate([np.arange(a + d, a + d + 3) for d in range(0, length, 12)])
+    k = np.repeat(k, 3)
+    t = -1.75 + 0.002 * (k - a) + rng.normal(0.0, 0.02, len(k))
+    extras = [(a + length + int(rng.integers(25, 70)), 0.0), (a - int(rng.integers(25, 60)), 0.0),
+              (a + length // 2 + 6, 1.2)]
+    for at, off in extras:
+        kk = np.repeat(np.arange(at, at + 4), 4)
+        kk = kk[(kk >= 0) & (kk < n)]
+        k = np.concatenate([k, kk])
+        t = np.concatenate([t, -1.75 + 0.002 * (kk - a) + off + rng.normal(0.0, 0.02, len(kk))])
+    drift = np.cumsum(rng.normal(0.0, 0.01, n)) if seed % 2 else None
+    whole = _robust_curve_window(k, t, n, 1e4, drift=drift)
+    window = _robust_curve(k, t, n, 1e4, drift=drift)
+    for x, y in zip(whole, window, strict=True):
+        assert np.array_equal(x, y, equal_nan=True)
+    assert (window[1] == 0).any() or (window[1] < 1).any()
+
+
+@pytest.mark.parametrize("at", [0, 1000, 2960])
+def test_a_short_line_with_a_blob_before_it_is_judged_on_the_same_stations(at: int) -> None:
+    """A blob 25 stations before 30 solid stations: the end-piece test looks 40 stations past the
+    gap, beyond the line's last point, where the window must still hold the empty stations."""
+    n = 3000
+    k = np.concatenate([np.repeat(np.arange(at, at + 3), 2), np.repeat(np.arange(at + 28, at + 58), 6)])
+    k = k[k < n]
+    t = np.full(len(k), -1.75) + 0.01 * np.sin(k)
+    whole = _robust_curve_window(k, t, n, 1e4)
+    window = _robust_curve(k, t, n, 1e4)
+    for x, y in zip(whole, window, strict=True):
+        assert np.array_equal(x, y, equal_nan=True)

@@ -14,7 +14,26 @@ _ALONG_SLOPE = 0.1  # lines joined across a gap run along the road there (within
 _DOUBLE_SPACING_SPREAD_M = 0.1  # a double line's two lines keep their spacing within this over its blocks
 
 
+_WINDOW_PAD = 2 * _ABSENT_RUN + 90  # stations around a line's points that its fit looks at (end pieces: 2 * _ABSENT_RUN)
+
+
 def _robust_curve(
+    k: np.ndarray, t: np.ndarray, n: int, lam: float, iters: int = 3, drift: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`_robust_curve_window` on the stations around the line's points only (`_WINDOW_PAD` either
+    side, within 0..n-1): every step of the fit looks no farther, so the numbers are the same as on
+    all n stations, and a long drive's many short lines cost their own length, not the drive's."""
+    out = np.full(n, np.nan)
+    observed = np.zeros(n, dtype=bool)
+    if len(t) == 0:
+        return out, np.ones(0), observed
+    base, end = max(int(k.min()) - _WINDOW_PAD, 0), min(int(k.max()) + _WINDOW_PAD + 1, n)
+    local = None if drift is None else drift[base:end]
+    out[base:end], w_pt, observed[base:end] = _robust_curve_window(k - base, t, end - base, lam, iters, local)
+    return out, w_pt, observed
+
+
+def _robust_curve_window(
     k: np.ndarray, t: np.ndarray, n: int, lam: float, iters: int = 3, drift: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Robust t(s) on stations: Whittaker over the points' span with Tukey weights; NaN outside.
@@ -135,8 +154,9 @@ def _fold_double_lines(k: np.ndarray, t: np.ndarray, n: int, lam: float, double:
     folded = np.zeros(len(t), dtype=bool)
     if max_spacing <= 0.0 or len(t) < 40:
         return t, folded
-    trend = _whittaker_points(k, t, np.ones(len(t)), n, 256.0 * lam)
-    r = t - trend[k]
+    k0 = int(k.min())
+    trend = _whittaker_points(k - k0, t, np.ones(len(t)), int(k.max()) - k0 + 1, 256.0 * lam)
+    r = t - trend[k - k0]
     blocks = k // block
     found: dict[int, tuple[float, float, np.ndarray, np.ndarray]] = {}
     for b in np.unique(blocks):
