@@ -99,6 +99,7 @@ def _build_on_frame(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lanes
         t_ego = _ego_offsets(frame, ego)
         for _ in range(3):
             use = np.where(off, -1, label)
+            fit = structure = None  # the last pass's (lines, stations) arrays are freed before the next are made
             fit = _fit_boundaries(k_pt, t_pt, use, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)),
                                   cfg.same_line_tolerance_m, double, cfg.end_dash_drift)
             root = _continuations(fit.t, int(round(cfg.line_join_gap_m / step)), cfg.same_line_tolerance_m,
@@ -107,6 +108,7 @@ def _build_on_frame(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lanes
                 label = np.where(label >= 0, root[np.maximum(label, 0)], -1)
                 use = np.where(off, -1, label)
                 superline = root[superline]
+                fit = None
                 fit = _fit_boundaries(k_pt, t_pt, use, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)),
                                       cfg.same_line_tolerance_m, double, cfg.end_dash_drift)
             crossing = _crossing_points(fit.t, use, k_pt, t_pt, cfg.assign_distance_m)

@@ -14,7 +14,7 @@ _ALONG_SLOPE = 0.1  # lines joined across a gap run along the road there (within
 _DOUBLE_SPACING_SPREAD_M = 0.1  # a double line's two lines keep their spacing within this over its blocks
 
 
-_WINDOW_PAD = 2 * _ABSENT_RUN + 90  # stations around a line's points that its fit looks at (end pieces: 2 * _ABSENT_RUN)
+_WINDOW_PAD = 2 * _ABSENT_RUN + 90  # stations around a line's points its fit looks at (end pieces: 2 * _ABSENT_RUN)
 
 
 def _robust_curve(
