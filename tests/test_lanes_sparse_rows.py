@@ -52,6 +52,8 @@ def test_divided_left_on_the_filled_rows_is_the_whole_array_answer(seed: int) ->
     got = _divided_left(t, on, solid)
     assert np.array_equal(got, _divided_left_dense(t, on, solid))
     assert got.any() and not got.all()
+    kept = np.flatnonzero(on.any(axis=1))
+    assert np.array_equal(_divided_left(t, on[kept], solid, kept), got)
 
 
 @pytest.mark.parametrize("seed", range(6))

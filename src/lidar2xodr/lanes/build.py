@@ -121,8 +121,7 @@ def _build_on_frame(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lanes
             )
             seen = _observed(k_pt[inside], t_pt[inside], ~crossing[inside], len(frame.s))
             sub = _lane_structure(fit.t[active], fit.support[active], solid, t_ego, step, w_lane, cfg, seen)
-            structure = _Structure(np.zeros(fit.t.shape, dtype=bool), np.full(fit.t.shape, np.nan))
-            structure.on[active], structure.t[active] = sub.on, sub.t
+            structure = _Structure(sub.on.copy(), sub.t.copy(), active, len(fit.t))
             if not np.any(structure.on.sum(axis=0) >= 2):
                 raise _NoRoad
             tapers, taper_notes = _taper_lanes(_Points(k_pt, t_pt, s_pt, inside, use, xyz[:, 2]), structure,
@@ -158,7 +157,7 @@ def _build_on_frame(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lanes
     solid_rows = np.zeros(len(fit.t), dtype=bool)
     solid_rows[active] = solid
     first = int(np.argmin(np.linalg.norm(frame.xy - model.reference[0, :2], axis=1)))
-    divided = _divided_left(fit.t, structure.on, solid_rows)[first : first + len(model.s)]
+    divided = _divided_left(fit.t, structure.on, solid_rows, structure.rows)[first : first + len(model.s)]
     _mark_dividers(model, _ego_track(frame, ego, model), cfg, divided)
     _type_tapers(model, tapers, new_id, travel)
     _type_by_width(model, travel, cfg)
@@ -260,9 +259,10 @@ def _assemble(
     a, b = int(idx[0]), int(idx[-1]) + 1
     s = frame.s[a:b] - frame.s[a]
     on, t = on[:, a:b], t[:, a:b]
-    used = np.flatnonzero(on.any(axis=1))
-    med = np.array([np.nanmedian(t[i]) for i in used])
-    ordered = used[np.argsort(-med, kind="stable")]
+    used_at = np.flatnonzero(on.any(axis=1))
+    med = np.array([np.nanmedian(t[i]) for i in used_at])
+    ordered_at = used_at[np.argsort(-med, kind="stable")]
+    used, ordered = structure.rows[used_at], structure.rows[ordered_at]
     patterns = [_mark_pattern(s_pt[(label == old) & inside], cfg) for old in ordered]
     residuals = []
     for old in ordered:
@@ -271,11 +271,11 @@ def _assemble(
         residuals.append(resid[np.isfinite(resid)])
     widths = marking_widths(residuals)
     rows = [
-        Boundary(id=-1, t=np.where(on[old], t[old], np.nan), mark_type=kind,
+        Boundary(id=-1, t=np.where(on[at], t[at], np.nan), mark_type=kind,
                  mark_width=round(width, 3) if width is not None else 0.15, dash_length=dash, gap_length=gap)
-        for old, width, (kind, dash, gap) in zip(ordered, widths, patterns, strict=True)
+        for at, width, (kind, dash, gap) in zip(ordered_at, widths, patterns, strict=True)
     ]
-    rows_on, rows_t = on[ordered], t[ordered]
+    rows_on, rows_t = on[ordered_at], t[ordered_at]
     if cfg.unpainted_lanes:
         from lidar2xodr.unpainted_lanes import implied_edges  # it uses this module's helpers
         broken = np.array([kind == "broken" and dash is not None and gap is not None
@@ -295,7 +295,7 @@ def _assemble(
     for i, bnd in enumerate(boundaries):
         bnd.id = i
     position = np.argsort(final, kind="stable")
-    new_id = np.full(len(on), -1, dtype=np.int64)
+    new_id = np.full(structure.n, -1, dtype=np.int64)
     new_id[ordered] = position[: len(ordered)]
     z_ref = _reference_z(k_pt, t_pt, pts.z, inside & (label >= 0) & np.isin(label, used), len(frame.s), step)
     reference = np.column_stack([frame.xy[a:b], z_ref[a:b]])

@@ -56,18 +56,28 @@ def _ego_track(frame: Frame, ego: np.ndarray | None, model: LaneModel) -> _EgoTr
     return _EgoTrack(k[keep], t_e[keep], np.sign(ds[keep]).astype(np.int64))
 
 
-def _divided_left(t_fit: np.ndarray, on: np.ndarray, solid: np.ndarray) -> np.ndarray:
+def _divided_left(t_fit: np.ndarray, on: np.ndarray, solid: np.ndarray, on_rows: np.ndarray | None = None
+                  ) -> np.ndarray:
     """Stations where another carriageway lies left of the kept one beyond a median: the nearest
     measured line left of the leftmost kept line is solid (its left edge line) and has a line beyond it.
-    Only rows with a kept or a fitted station are looked at: most of the (lines, stations) array is empty."""
-    rows_on = np.flatnonzero(on.any(axis=1))
+    `on`: where each kept line is kept, for the rows `on_rows` of `t_fit` (default all rows). Only rows
+    with a kept or a fitted station are looked at: most of a long drive's (lines, stations) array is empty."""
+    m = t_fit.shape[1]
+    if on_rows is None:
+        on_rows = np.arange(len(on))
+    held = on.any(axis=1)
+    on_rows, on = on_rows[held], on[held]
     rows = np.flatnonzero(np.isfinite(t_fit).any(axis=1))
+    on_at = np.zeros((len(rows), m), dtype=bool)
+    pos = np.minimum(np.searchsorted(rows, on_rows), max(len(rows) - 1, 0))
+    hit = (rows[pos] == on_rows) if len(rows) else np.zeros(len(on_rows), dtype=bool)
+    on_at[pos[hit]] = on[hit]
     with np.errstate(invalid="ignore"):
-        top = np.max(np.where(on[rows_on], t_fit[rows_on], -np.inf), axis=0, initial=-np.inf)
-        beyond = ~on[rows] & np.isfinite(t_fit[rows]) & (t_fit[rows] > top[None, :] + 0.5)
+        top = np.max(np.where(on, t_fit[on_rows], -np.inf), axis=0, initial=-np.inf)
+        beyond = ~on_at & np.isfinite(t_fit[rows]) & (t_fit[rows] > top[None, :] + 0.5)
     count = beyond.sum(axis=0)
     if len(rows) == 0:
-        return np.zeros(t_fit.shape[1], dtype=bool)
+        return np.zeros(m, dtype=bool)
     nearest = rows[np.argmin(np.where(beyond, t_fit[rows], np.inf), axis=0)]
     return (count >= 2) & solid[nearest]
 

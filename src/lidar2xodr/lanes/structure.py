@@ -13,8 +13,18 @@ from lidar2xodr.lanes.tracks import _ABSENT_RUN, _Observed
 
 @dataclass
 class _Structure:
-    on: np.ndarray  # (B, M) boundary kept at station
-    t: np.ndarray  # (B, M) offsets including taper extensions
+    """The kept lines: only the rows of lines that can be kept (most of a long drive's fitted lines
+    are short pieces that never are), each with its row in the full numbering of lines."""
+
+    on: np.ndarray  # (R, M) boundary kept at station
+    t: np.ndarray  # (R, M) offsets including taper extensions
+    rows: np.ndarray | None = None  # (R,) ascending row of each in the full numbering (None: 0..R-1)
+    n: int = 0  # rows in the full numbering
+
+    def __post_init__(self) -> None:
+        if self.rows is None:
+            self.rows = np.arange(len(self.on))
+        self.n = max(self.n, len(self.on))
 
 
 def _lane_structure(

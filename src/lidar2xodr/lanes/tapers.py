@@ -132,14 +132,12 @@ def _taper_lanes(pts: _Points, structure: _Structure, side: int, step: float,
     at most stations wins. Returns the tapers (rows not yet assigned) and notes.
     """
     on, t = structure.on, structure.t
-    n_rows, m = on.shape
-    rows_on = np.flatnonzero(on.any(axis=1))
-    on_r, t_r = on[rows_on], t[rows_on]
-    valid = on_r.sum(axis=0) >= 2
-    key = np.where(on_r, side * np.where(on_r, t_r, 0.0), -np.inf)
-    outer_row = rows_on[np.argmax(key, axis=0)] if len(rows_on) else np.zeros(m, dtype=np.int64)
-    outer_row[~on_r.any(axis=0)] = 0
-    edge = t[outer_row, np.arange(m)]
+    n_rows, m = structure.n, on.shape[1]
+    valid = on.sum(axis=0) >= 2
+    outer_at = np.argmax(np.where(on, side * np.where(on, t, 0.0), -np.inf), axis=0) if len(on) else np.zeros(
+        m, dtype=np.int64)
+    edge = t[outer_at, np.arange(m)] if len(on) else np.full(m, np.nan)
+    outer_row = np.where(on.any(axis=0), structure.rows[outer_at], 0) if len(on) else outer_at
     k_all = pts.k
     use = pts.inside & valid[k_all]
     w_all = side * (pts.t - np.where(use, edge[k_all], 0.0))
@@ -233,6 +231,8 @@ def _add_tapers(fit: _Fit, structure: _Structure, label: np.ndarray, tapers: lis
         fit.support = np.append(fit.support, float(len(taper.points)))
         structure.on = np.vstack([structure.on, np.isfinite(taper.t)[None, :]])
         structure.t = np.vstack([structure.t, taper.t[None, :]])
+        structure.rows = np.append(structure.rows, taper.row)
+        structure.n = len(fit.t)
         label[taper.points] = taper.row
 
 
