@@ -687,7 +687,8 @@ def test_a_broken_line_is_fitted_from_its_first_dash_where_the_frame_runs_at_an_
     k = np.concatenate([solid, dashes])
     label = np.concatenate([np.zeros(len(solid), dtype=int), np.ones(len(dashes), dtype=int)])
     t = np.where(label == 0, 2.0, -1.5) + drift(k) + rng.normal(0, 0.02, len(k))
-    fit = _fit_boundaries(k, t, label, np.ones(len(k), dtype=bool), 2, m, 1e4, 20, 0.3, end_dash_drift=True)
-    broken = np.flatnonzero(np.isfinite(fit.t[1]))
+    lines = _fit_boundaries(k, t, label, np.ones(len(k), dtype=bool), 2, m, 1e4, 20, 0.3, end_dash_drift=True)
+    curve = lines.dense(np.array([1]))[0]
+    broken = np.flatnonzero(np.isfinite(curve))
     assert broken[0] == 0 and broken[-1] == dashes.max()
-    assert np.max(np.abs(fit.t[1][broken] - (-1.5 + drift(broken)))) < 0.05
+    assert np.max(np.abs(curve[broken] - (-1.5 + drift(broken)))) < 0.05

@@ -10,7 +10,7 @@ from lidar2xodr.data import Boundary, LaneModel, LaneSection
 from lidar2xodr.lanes.labels import _fork_curves
 from lidar2xodr.lanes.structure import _open_beside_edge
 from lidar2xodr.lanes.tapers import _type_by_width
-from lidar2xodr.lanes.tracks import _bridge_gaps
+from lidar2xodr.lanes.tracks import _bridge_gaps, _Lines
 
 M = 300
 
@@ -26,8 +26,9 @@ def test_a_gap_is_bridged_along_the_neighbour_that_stays_parallel() -> None:
     observed = np.ones_like(t, dtype=bool)
     observed[0, 100:200] = False
     observed[1] = (k % 18) < 6
-    _bridge_gaps(t, observed, 20, 0.5)
-    assert np.allclose(t[0, 100:200], edge[100:200], atol=1e-9)
+    lines = _Lines.from_dense(t, observed)
+    _bridge_gaps(lines, 20, 0.5)
+    assert np.allclose(lines.dense(np.array([0]))[0, 100:200], edge[100:200], atol=1e-9)
 
 
 def test_fork_labelling_keeps_the_edge_on_its_course_and_carries_the_leaving_line_back() -> None:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from lidar2xodr.lanes.dividers import _divided_left
-from lidar2xodr.lanes.tracks import _bridge_gaps, _robust_curve, _robust_curve_window, _slope_at
+from lidar2xodr.lanes.tracks import _bridge_gaps, _Lines, _robust_curve, _robust_curve_window, _slope_at
 
 
 def _sparse_lines(rng: np.random.Generator, n: int, m: int) -> np.ndarray:
@@ -32,7 +32,10 @@ def test_slope_at_points_is_np_gradient_there(m: int) -> None:
     t = _sparse_lines(rng, 12, m) if m > 1 else rng.normal(size=(12, 1))
     row, k = rng.integers(0, 12, 500), rng.integers(0, m, 500)
     full = np.abs(np.gradient(t, axis=1)) if m > 1 else np.zeros_like(t)
-    assert np.array_equal(_slope_at(t, row, k), full[row, k], equal_nan=True)
+    assert np.array_equal(_slope_at(lambda r, j: t[r, j], row, k, m), full[row, k], equal_nan=True)
+    lines = _Lines.from_dense(t, np.zeros(t.shape, dtype=bool))
+    assert np.array_equal(_slope_at(lines.value_at, row, k, m), full[row, k], equal_nan=True)
+    assert np.array_equal(lines.value_at(row, k), t[row, k], equal_nan=True)
 
 
 def _divided_left_dense(t_fit: np.ndarray, on: np.ndarray, solid: np.ndarray) -> np.ndarray:
@@ -57,8 +60,8 @@ def test_divided_left_on_the_filled_rows_is_the_whole_array_answer(seed: int) ->
 
 
 @pytest.mark.parametrize("seed", range(6))
-def test_bridging_only_the_fitted_rows_changes_nothing(seed: int) -> None:
-    """Rows named as fitted (all that hold a line, some empty ones too) bridge exactly as all rows do."""
+def test_lines_bridged_by_their_spans_are_bridged_as_the_whole_array_was(seed: int) -> None:
+    """Bridging the lines stored by their spans gives the whole (lines, stations) array's bridging."""
     rng = np.random.default_rng(100 + seed)
     t = _sparse_lines(rng, 30, 400)
     observed = np.isfinite(t) & (rng.random(t.shape) < 0.9)
@@ -67,14 +70,11 @@ def test_bridging_only_the_fitted_rows_changes_nothing(seed: int) -> None:
             fin = np.flatnonzero(np.isfinite(t[b]))
             if len(fin) > 60:
                 observed[b, fin[10] : fin[10] + 40] = False
-    holding = np.flatnonzero(np.isfinite(t).any(axis=1))
-    rows = np.union1d(holding, rng.choice(len(t), 5, replace=False))
-    a, b, c = t.copy(), t.copy(), t.copy()
+    a = t.copy()
     _bridge_gaps_dense(a, observed, 20, 0.5)
-    _bridge_gaps(b, observed, 20, 0.5)
-    _bridge_gaps(c, observed, 20, 0.5, rows)
-    assert np.array_equal(a, b, equal_nan=True)
-    assert np.array_equal(a, c, equal_nan=True)
+    lines = _Lines.from_dense(t.copy(), observed)
+    _bridge_gaps(lines, 20, 0.5)
+    assert np.array_equal(lines.dense(np.arange(len(t))), a, equal_nan=True)
     assert not np.array_equal(a, t, equal_nan=True)
 
 

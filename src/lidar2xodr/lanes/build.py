@@ -30,7 +30,7 @@ from lidar2xodr.lanes.sections import _sections
 from lidar2xodr.lanes.smoothing import _lam, _runs, _whittaker
 from lidar2xodr.lanes.structure import _lane_structure, _Structure
 from lidar2xodr.lanes.tapers import _add_tapers, _Taper, _taper_lanes, _travel_sign, _type_by_width, _type_tapers
-from lidar2xodr.lanes.tracks import _continuations, _crossing_points, _Fit, _fit_boundaries, _observed
+from lidar2xodr.lanes.tracks import _continuations, _crossing_points, _Fit, _fit_boundaries, _Lines, _observed
 
 
 def build_lane_model(
@@ -99,29 +99,30 @@ def _build_on_frame(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lanes
         t_ego = _ego_offsets(frame, ego)
         for _ in range(3):
             use = np.where(off, -1, label)
-            fit = structure = None  # the last pass's (lines, stations) arrays are freed before the next are made
-            fit = _fit_boundaries(k_pt, t_pt, use, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)),
-                                  cfg.same_line_tolerance_m, double, cfg.end_dash_drift)
-            root = _continuations(fit.t, int(round(cfg.line_join_gap_m / step)), cfg.same_line_tolerance_m,
-                                  int(round(10.0 / step)))
+            fit = structure = None  # the last pass's arrays are freed before the next are made
+            lines = _fit_boundaries(k_pt, t_pt, use, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)),
+                                    cfg.same_line_tolerance_m, double, cfg.end_dash_drift)
+            root = _joins(lines, int(round(cfg.line_join_gap_m / step)), cfg.same_line_tolerance_m,
+                          int(round(10.0 / step)))
             if np.any(root != np.arange(n_sl)):
                 label = np.where(label >= 0, root[np.maximum(label, 0)], -1)
                 use = np.where(off, -1, label)
                 superline = root[superline]
-                fit = None
-                fit = _fit_boundaries(k_pt, t_pt, use, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)),
-                                      cfg.same_line_tolerance_m, double, cfg.end_dash_drift)
-            crossing = _crossing_points(fit.t, use, k_pt, t_pt, cfg.assign_distance_m)
-            short = np.isfinite(fit.t).sum(axis=1) * step < cfg.min_section_length_m
-            n_short = int(np.sum(short & np.isfinite(fit.t).any(axis=1)))
-            fit.t[short] = np.nan
-            active = np.flatnonzero(np.isfinite(fit.t).any(axis=1))
+                lines = _fit_boundaries(k_pt, t_pt, use, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)),
+                                        cfg.same_line_tolerance_m, double, cfg.end_dash_drift)
+            crossing = _crossing_points(lines, use, k_pt, t_pt, cfg.assign_distance_m)
+            counts = lines.finite_counts()
+            short = counts * step < cfg.min_section_length_m
+            n_short = int(np.sum(short & (counts > 0)))
+            active = np.flatnonzero(~short & (counts > 0))
+            fit = _Fit(lines.dense(active), lines.support, active)
+            del lines
             solid = np.array(
                 [_mark_pattern(s_pt[(use == b) & inside], cfg)[0] == "solid" for b in active], dtype=bool
             )
             seen = _observed(k_pt[inside], t_pt[inside], ~crossing[inside], len(frame.s))
-            sub = _lane_structure(fit.t[active], fit.support[active], solid, t_ego, step, w_lane, cfg, seen)
-            structure = _Structure(sub.on.copy(), sub.t.copy(), active, len(fit.t))
+            sub = _lane_structure(fit.t, fit.support[active], solid, t_ego, step, w_lane, cfg, seen)
+            structure = _Structure(sub.on.copy(), sub.t.copy(), active, n_sl)
             if not np.any(structure.on.sum(axis=0) >= 2):
                 raise _NoRoad
             tapers, taper_notes = _taper_lanes(_Points(k_pt, t_pt, s_pt, inside, use, xyz[:, 2]), structure,
@@ -133,11 +134,11 @@ def _build_on_frame(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lanes
                 break
             off |= found
             # the edge bent towards a taper's line had left its own paint unlabelled: label again
-            curves = _hold_ends(_labelling_curves(sub.t, fit.t[active], cfg.same_line_tolerance_m),
+            curves = _hold_ends(_labelling_curves(sub.t, fit.t, cfg.same_line_tolerance_m),
                                 int(round(100.0 / step)), cfg.same_line_tolerance_m)
             nearest = _label_by_distance(k_pt, t_pt, inside, curves, cfg)
             label = np.where(nearest >= 0, active[np.maximum(nearest, 0)], -1)
-        curves = _labelling_curves(sub.t, fit.t[active], cfg.same_line_tolerance_m)
+        curves = _labelling_curves(sub.t, fit.t, cfg.same_line_tolerance_m)
         curves = _hold_ends(curves, int(round(100.0 / step)), cfg.same_line_tolerance_m)
         curves = _fork_curves(curves, sub.on, cfg.min_lane_width_m)
         nearest = _label_by_distance(k_pt, t_pt, inside, curves, cfg)
@@ -154,10 +155,11 @@ def _build_on_frame(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lanes
     _add_tapers(fit, structure, pts.label, tapers)
     warnings.extend(taper_notes)
     model, new_id = _assemble(cloud, pieces, superline, frame, fit, structure, pts, warnings, cfg)
-    solid_rows = np.zeros(len(fit.t), dtype=bool)
+    solid_rows = np.zeros(len(fit.support), dtype=bool)
     solid_rows[active] = solid
     first = int(np.argmin(np.linalg.norm(frame.xy - model.reference[0, :2], axis=1)))
-    divided = _divided_left(fit.t, structure.on, solid_rows, structure.rows)[first : first + len(model.s)]
+    assert np.array_equal(structure.rows, fit.rows)
+    divided = _divided_left(fit.t, structure.on, solid_rows[fit.rows])[first : first + len(model.s)]
     _mark_dividers(model, _ego_track(frame, ego, model), cfg, divided)
     _type_tapers(model, tapers, new_id, travel)
     _type_by_width(model, travel, cfg)
@@ -178,6 +180,15 @@ def _build_on_frame(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lanes
         c.superline = longest[i][1]
     model.candidates = candidates
     return model
+
+
+def _joins(lines: _Lines, gap_max: int, tol: float, probe: int) -> np.ndarray:
+    """`_continuations` of the fitted lines, on the lines longer than `probe` stations only (the only
+    ones that can join)."""
+    rows = np.flatnonzero(lines.finite_counts() > probe)
+    root = np.arange(len(lines.t))
+    root[rows] = rows[_continuations(lines.dense(rows), gap_max, tol, probe)]
+    return root
 
 
 def _centre_offsets(structure: _Structure, cfg: LanesConfig, step: float) -> tuple[np.ndarray, np.ndarray]:
@@ -267,7 +278,7 @@ def _assemble(
     residuals = []
     for old in ordered:
         sel = (label == old) & inside
-        resid = t_pt[sel] - fit.t[old, k_pt[sel]]
+        resid = t_pt[sel] - fit.t[fit.row_of(old), k_pt[sel]]
         residuals.append(resid[np.isfinite(resid)])
     widths = marking_widths(residuals)
     rows = [
@@ -304,7 +315,8 @@ def _assemble(
         bnd.t = t_new[i]
     for i, c in enumerate(candidates):
         c.superline = int(new_id[superline[i]]) if superline[i] < len(new_id) else -1
-    warnings.extend(_unused_notes(fit.t[:, a:b], on_new, {int(old): int(new_id[old]) for old in ordered}, s))
+    warnings.extend(_unused_notes(fit.t[:, a:b], on_new, {int(fit.row_of(old)): int(new_id[old]) for old in ordered},
+                                  s))
     model = LaneModel(
         s=s,
         reference=reference,

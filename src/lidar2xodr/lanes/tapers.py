@@ -229,10 +229,11 @@ def _add_tapers(fit: _Fit, structure: _Structure, label: np.ndarray, tapers: lis
     for taper in tapers:
         fit.t = np.vstack([fit.t, taper.t[None, :]])
         fit.support = np.append(fit.support, float(len(taper.points)))
+        fit.rows = np.append(fit.rows, taper.row)
         structure.on = np.vstack([structure.on, np.isfinite(taper.t)[None, :]])
         structure.t = np.vstack([structure.t, taper.t[None, :]])
         structure.rows = np.append(structure.rows, taper.row)
-        structure.n = len(fit.t)
+        structure.n = len(fit.support)
         label[taper.points] = taper.row
 
 
