@@ -7,7 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from lidar2xodr.config import LanesConfig
 from lidar2xodr.lanes.dividers import _divided_left
+from lidar2xodr.lanes.structure import _choose_carriageway, _sorted_columns
 from lidar2xodr.lanes.tracks import _bridge_gaps, _Lines, _robust_curve, _robust_curve_window, _slope_at
 
 
@@ -149,3 +151,70 @@ def test_a_short_line_with_a_blob_before_it_is_judged_on_the_same_stations(at: i
     window = _robust_curve(k, t, n, 1e4)
     for x, y in zip(whole, window, strict=True):
         assert np.array_equal(x, y, equal_nan=True)
+
+
+def _choose_carriageway_by_group(t: np.ndarray, on: np.ndarray, t_ego: np.ndarray | None, solid: np.ndarray,
+                                 support: np.ndarray, cfg: LanesConfig) -> np.ndarray:
+    """`_choose_carriageway` as it was written before: one pass over the whole array per group."""
+    b_n, m = t.shape
+    order, ts = _sorted_columns(t, on)
+    present = np.isfinite(ts)
+    gap = ts[:-1] - ts[1:]
+    both_solid = solid[order[:-1]] & solid[order[1:]]
+    beyond = np.vstack([np.zeros((1, m), dtype=bool), present[:-2]]) & np.vstack(
+        [present[2:], np.zeros((1, m), dtype=bool)])
+    median = both_solid & beyond & present[:-1] & present[1:]
+    none = np.zeros((1, m), dtype=bool)
+    outer = ~np.vstack([none, present[:-2]]) | ~np.vstack([present[2:], none])
+    cols = np.arange(m)
+    ahead, back = np.minimum(cols + 5, m - 1), np.maximum(cols - 5, 0)
+    width_then = t[order[:-1], ahead] - t[order[1:], ahead]
+    width_before = t[order[:-1], back] - t[order[1:], back]
+    steady = np.abs(width_then - width_before) < cfg.stable_lane_slope * (ahead - back) * 1.0
+    wide_edge = outer & (gap > cfg.max_lane_width_m) & steady
+    split = np.vstack([none, ~(gap <= cfg.carriageway_gap_m) | median | wide_edge])
+    group = np.cumsum(split, axis=0)
+    n_groups = group.max() + 1
+    score = np.zeros((n_groups, m))
+    weight = support[order] / max(float(support.max()), 1e-9)
+    for g in range(n_groups):
+        sel = present & (group == g)
+        score[g] = sel.sum(axis=0) + 1e-3 * np.where(sel, weight, 0.0).sum(axis=0)
+    choice = np.argmax(score, axis=0)
+    if t_ego is not None:
+        for g in range(n_groups):
+            sel = present & (group == g)
+            top = np.max(np.where(sel, ts, -np.inf), axis=0)
+            bot = np.min(np.where(sel, ts, np.inf), axis=0)
+            holds = (t_ego <= top + 0.5) & (t_ego >= bot - 0.5) & np.isfinite(t_ego)
+            choice = np.where(holds, g, choice)
+    keep_sorted = present & (group == choice[None, :])
+    keep = np.zeros_like(on)
+    np.put_along_axis(keep, order, keep_sorted, axis=0)
+    return keep & on
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_the_carriageway_chosen_per_station_at_once_is_the_one_chosen_group_by_group(seed: int) -> None:
+    """Two carriageways beyond a median, lanes opening and ending, lines missing, equal supports and
+    an ego that changes carriageway: the same lines kept at every station."""
+    rng = np.random.default_rng(seed)
+    m = 300
+    offsets = np.array([10.5, 7.0, 3.5, 0.0, -3.5, -7.0, -7.5, -11.0, -14.5, -18.0, -21.5])
+    t = offsets[:, None] + np.cumsum(rng.normal(0.0, 0.02, (len(offsets), m)), axis=1)
+    on = rng.random(t.shape) < 0.85
+    for b in rng.choice(len(offsets), 4, replace=False):
+        a = int(rng.integers(0, m))
+        on[b, a : a + int(rng.integers(20, 120))] = False
+    t[~on & (rng.random(t.shape) < 0.5)] = np.nan
+    solid = rng.random(len(offsets)) < 0.5
+    solid[[5, 6]] = True
+    support = rng.choice([100.0, 250.0, 250.0, 777.0], len(offsets)) * rng.random(len(offsets))
+    t_ego = np.select([np.arange(m) < 100, np.arange(m) < 150], [-2.0, -7.25], -16.0) if seed % 3 else None
+    if seed % 3 == 2:
+        t_ego = np.where(rng.random(m) < 0.2, np.nan, t_ego)
+    cfg = LanesConfig()
+    got = _choose_carriageway(t, on, t_ego, solid, support, cfg)
+    want = _choose_carriageway_by_group(t, on, t_ego, solid, support, cfg)
+    assert np.array_equal(got, want)
+    assert got.any() and (got.sum(axis=0) < on.sum(axis=0)).any()

@@ -136,19 +136,21 @@ def _choose_carriageway(
     split = np.vstack([none, ~(gap <= cfg.carriageway_gap_m) | median | wide_edge])
     group = np.cumsum(split, axis=0)
     n_groups = group.max() + 1
-    score = np.zeros((n_groups, m))
     weight = support[order] / max(float(support.max()), 1e-9)
-    for g in range(n_groups):
-        sel = present & (group == g)
-        score[g] = sel.sum(axis=0) + 1e-3 * np.where(sel, weight, 0.0).sum(axis=0)
-    choice = np.argmax(score, axis=0)
+    row, col = np.nonzero(present)  # row by row: each (group, station) sums its rows in order
+    cell = group[row, col] * m + col
+    count = np.bincount(cell, minlength=n_groups * m).reshape(n_groups, m)
+    mass = np.bincount(cell, weight[row, col], minlength=n_groups * m).reshape(n_groups, m)
+    choice = np.argmax(count + 1e-3 * mass, axis=0)
     if t_ego is not None:
-        for g in range(n_groups):
-            sel = present & (group == g)
-            top = np.max(np.where(sel, ts, -np.inf), axis=0)
-            bot = np.min(np.where(sel, ts, np.inf), axis=0)
-            holds = (t_ego <= top + 0.5) & (t_ego >= bot - 0.5) & np.isfinite(t_ego)
-            choice = np.where(holds, g, choice)
+        top = np.full(n_groups * m, -np.inf)
+        bot = np.full(n_groups * m, np.inf)
+        np.maximum.at(top, cell, ts[row, col])
+        np.minimum.at(bot, cell, ts[row, col])
+        top, bot = top.reshape(n_groups, m), bot.reshape(n_groups, m)
+        holds = (t_ego <= top + 0.5) & (t_ego >= bot - 0.5) & np.isfinite(t_ego)
+        last = n_groups - 1 - np.argmax(holds[::-1], axis=0)
+        choice = np.where(holds.any(axis=0), last, choice)
     keep_sorted = present & (group == choice[None, :])
     keep = np.zeros_like(on)
     np.put_along_axis(keep, order, keep_sorted, axis=0)
