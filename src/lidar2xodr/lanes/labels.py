@@ -37,11 +37,12 @@ def _labelling_curves(kept: np.ndarray, fitted: np.ndarray, tol: float) -> np.nd
     within `tol` (ignored lines keep their points; a dropped duplicate gives its points up)."""
     out = kept.copy()
     for b in range(len(kept)):
-        free = ~np.isfinite(kept[b]) & np.isfinite(fitted[b])
-        if not free.any():
+        free = np.flatnonzero(~np.isfinite(kept[b]) & np.isfinite(fitted[b]))
+        if not len(free):
             continue
-        close = np.abs(np.delete(kept, b, axis=0) - fitted[b][None, :]) < tol
-        out[b] = np.where(free & ~close.any(axis=0), fitted[b], out[b])
+        close = np.abs(kept[:, free] - fitted[b, free][None, :]) < tol  # row b is NaN there: never close
+        take = free[~close.any(axis=0)]
+        out[b, take] = fitted[b, take]
     return out
 
 
@@ -54,11 +55,11 @@ def _hold_ends(curves: np.ndarray, reach: int, tol: float) -> np.ndarray:
         fin = np.flatnonzero(np.isfinite(c))
         if len(fin) == 0:
             continue
-        others = np.delete(curves, b, axis=0)
+        others = np.delete(np.arange(len(curves)), b)
         for end, direction in ((fin[0], -1), (fin[-1], 1)):
             for i in range(1, reach + 1):
                 k = end + direction * i
-                if k < 0 or k >= m or np.any(np.abs(others[:, k] - c[end]) < tol):
+                if k < 0 or k >= m or np.any(np.abs(curves[others, k] - c[end]) < tol):
                     break
                 out[b, k] = c[end]
     return out
@@ -137,13 +138,27 @@ def _fork_curves(curves: np.ndarray, on: np.ndarray, min_width: float) -> np.nda
 def _label_by_distance(
     k: np.ndarray, t: np.ndarray, inside: np.ndarray, curves: np.ndarray, cfg: LanesConfig
 ) -> np.ndarray:
-    """Superline of every point: the nearest fitted curve at its station, within assign_distance_m."""
+    """Superline of every point: the nearest fitted curve at its station, within assign_distance_m.
+
+    Each point is measured only against the curves that exist at its station (a long drive's
+    stations hold a few of its ~90 curves), in row order, so ties go to the lower row as in a
+    search over all rows."""
     label = np.full(len(t), -1, dtype=np.int64)
+    col, row = np.nonzero(np.isfinite(curves).T)  # by station, rows ascending
+    depth = int(np.bincount(col, minlength=curves.shape[1]).max(initial=0))
+    if depth == 0:
+        return label
+    place = np.arange(len(col)) - np.searchsorted(col, col)
+    rows = np.zeros((curves.shape[1], depth), dtype=np.int64)
+    vals = np.full((curves.shape[1], depth), np.inf)
+    rows[col, place] = row
+    vals[col, place] = curves[row, col]
     for a in range(0, len(t), 200000):
         sl = slice(a, a + 200000)
-        d = np.abs(curves[:, k[sl]] - t[sl][None, :])
-        d = np.where(np.isfinite(d), d, np.inf)
-        best = np.argmin(d, axis=0)
-        ok = (d[best, np.arange(len(best))] <= cfg.assign_distance_m) & inside[sl]
-        label[sl] = np.where(ok, best, -1)
+        d = np.abs(vals[k[sl]] - t[sl][:, None])
+        d = np.where(np.isnan(d), np.inf, d)
+        best = np.argmin(d, axis=1)
+        at = np.arange(len(best))
+        ok = (d[at, best] <= cfg.assign_distance_m) & inside[sl]
+        label[sl] = np.where(ok, rows[k[sl], best], -1)
     return label

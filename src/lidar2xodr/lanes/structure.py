@@ -64,13 +64,19 @@ def _lane_structure(
 
 def _drop_duplicates(t: np.ndarray, on: np.ndarray, rank: np.ndarray, tol: float, min_run: int) -> None:
     """Where two lines run closer than `tol`, keep one: the one that goes on where the other ends
-    (a lane closing onto its neighbour), else the one with more support."""
+    (a lane closing onto its neighbour), else the one with more support.
+
+    Only pairs whose kept spans overlap are compared, on that overlap: presence is only ever taken
+    away here, so a pair apart at the start stays apart."""
     b_n, m = t.shape
     finite = np.isfinite(t)
+    lo, hi = _spans(on)
     for i in range(b_n):
-        for j in range(i + 1, b_n):
-            close = on[i] & on[j] & (np.abs(t[i] - t[j]) < tol)
+        for j in np.flatnonzero(np.maximum(lo[i + 1 :], lo[i]) < np.minimum(hi[i + 1 :], hi[i])) + i + 1:
+            a, e = max(lo[i], lo[j]), min(hi[i], hi[j])
+            close = on[i, a:e] & on[j, a:e] & (np.abs(t[i, a:e] - t[j, a:e]) < tol)
             for c0, c1 in _runs(close):
+                c0, c1 = c0 + a, c1 + a
                 bi, ai = _finite_reach(finite[i], c0, c1)
                 bj, aj = _finite_reach(finite[j], c0, c1)
                 ends_i = (ai < min_run <= aj) or (bi < min_run <= bj)
@@ -80,6 +86,15 @@ def _drop_duplicates(t: np.ndarray, on: np.ndarray, rank: np.ndarray, tol: float
                 else:
                     victim = i if rank[i] > rank[j] else j
                 on[victim, c0:c1] = False
+
+
+def _spans(on: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """[first, last + 1) of every row's True stations ((0, 0) for a row without any)."""
+    anyon = on.any(axis=1)
+    m = on.shape[1]
+    lo = np.where(anyon, np.argmax(on, axis=1), 0)
+    hi = np.where(anyon, m - np.argmax(on[:, ::-1], axis=1), 0)
+    return lo, hi
 
 
 def _finite_reach(finite: np.ndarray, c0: int, c1: int) -> tuple[int, int]:
@@ -96,6 +111,14 @@ def _sorted_columns(t: np.ndarray, on: np.ndarray) -> tuple[np.ndarray, np.ndarr
     key = np.where(on, -t, np.inf)
     order = np.argsort(key, axis=0, kind="stable")
     return order, np.take_along_axis(np.where(on, t, np.nan), order, axis=0)
+
+
+def _present_columns(t: np.ndarray, on: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`_sorted_columns` cut to as many places as the fullest station has present lines: the places
+    below hold no line at any station (a long drive keeps ~90 rows but ~6 lines at a station)."""
+    order, ts = _sorted_columns(t, on)
+    depth = max(int(on.sum(axis=0).max(initial=0)), 1)
+    return order[:depth], ts[:depth]
 
 
 def _choose_carriageway(
@@ -117,7 +140,7 @@ def _choose_carriageway(
     b_n, m = t.shape
     if b_n == 0 or m == 0:
         return np.zeros_like(on)
-    order, ts = _sorted_columns(t, on)
+    order, ts = _present_columns(t, on)
     present = np.isfinite(ts)
     gap = ts[:-1] - ts[1:]
     both_solid = solid[order[:-1]] & solid[order[1:]]
@@ -162,21 +185,30 @@ def _check_adjacency(
 ) -> tuple[np.ndarray, list[tuple[int, int, int]]]:
     """Every pair of neighbouring lines must hold a stable lane somewhere along their adjacency."""
     b_n, m = t.shape
-    order, ts = _sorted_columns(t, on)
+    order, ts = _present_columns(t, on)
     need = max(int(round(cfg.min_section_length_m / step)), 1)
     upper, lower = order[:-1], order[1:]
     valid = np.isfinite(ts[:-1]) & np.isfinite(ts[1:])
     width = ts[:-1] - ts[1:]
     key = np.where(valid, upper * b_n + lower, -1)
+    rows, cols = np.nonzero(valid)  # row by row; a pair of neighbours meets at most once per station
+    by_key = np.argsort(key[rows, cols], kind="stable")
+    rows, cols = rows[by_key], cols[by_key]
+    keys, first = np.unique(key[rows, cols], return_index=True)
+    cells = dict(zip(keys.tolist(), np.split(np.arange(len(rows)), first[1:]), strict=True))
     stable_len: dict[int, int] = {}
-    for key_value in np.unique(key[valid]):
-        at = (key == key_value).any(axis=0)
-        w = np.where(key == key_value, width, 0.0).sum(axis=0)
+    for key_value, at in cells.items():
+        c = cols[at]
+        a, e = max(int(c.min()) - 1, 0), min(int(c.max()) + 2, m)  # one zero either side: same gradient
+        w = np.zeros(e - a)
+        w[c - a] = width[rows[at], c]
         slope = np.abs(np.gradient(w)) / step
+        held = np.zeros(e - a, dtype=bool)
+        held[c - a] = True
         good = (
-            at & (w >= cfg.min_lane_width_m) & (w <= cfg.max_lane_width_m) & (slope < cfg.stable_lane_slope)
+            held & (w >= cfg.min_lane_width_m) & (w <= cfg.max_lane_width_m) & (slope < cfg.stable_lane_slope)
         )
-        stable_len[int(key_value)] = max((e - s for s, e in _runs(good)), default=0)
+        stable_len[key_value] = max((int(y - x) for x, y in _runs(good)), default=0)
     count = on.sum(axis=0)
     on = on.copy()
     dropped: list[tuple[int, int, int]] = []
@@ -184,17 +216,17 @@ def _check_adjacency(
         if length >= need:
             continue
         a, b = divmod(key_value, b_n)
-        rows, cols = np.nonzero(key == key_value)
-        first_row = np.all(rows == 0)
-        last_row = np.all(count[cols] == rows + 2)
+        r, c = rows[cells[key_value]], cols[cells[key_value]]
+        first_row = np.all(r == 0)
+        last_row = np.all(count[c] == r + 2)
         if first_row and not last_row:
             victim = a
         elif last_row and not first_row:
             victim = b
         else:
             victim = a if rank[a] > rank[b] else b
-        on[victim, cols] = False
-        dropped.append((int(victim), int(cols.min()), int(cols.max())))
+        on[victim, c] = False
+        dropped.append((int(victim), int(c.min()), int(c.max())))
     return on, dropped
 
 

@@ -62,7 +62,7 @@ def _straight_lines(s: np.ndarray, w: np.ndarray, k: np.ndarray, step: float,
     n_k = int(kc.max()) + 1
     seeds = []
     for lo in np.arange(sc.min(), sc.max() + 1e-9, 0.5 * window):
-        m = (sc >= lo) & (sc < lo + window)
+        m = slice(np.searchsorted(sc, lo, "left"), np.searchsorted(sc, lo + window, "left"))  # cells by station
         if len(np.unique(kc[m])) < need:
             continue
         mid = lo + 0.5 * window
@@ -83,21 +83,52 @@ def _straight_lines(s: np.ndarray, w: np.ndarray, k: np.ndarray, step: float,
     return seeds
 
 
-def _line_run(s: np.ndarray, w: np.ndarray, k: np.ndarray, line: tuple[float, float], seed: tuple[float, float],
-              step: float, cfg: LanesConfig) -> np.ndarray:
-    """Indices of the points on the line (within `taper_line_tolerance_m`) in its stretch that overlaps
-    the seed window most, stretches being split at gaps over `taper_max_gap_m` without points."""
-    on = np.flatnonzero(np.abs(w - (line[0] + line[1] * s)) < cfg.taper_line_tolerance_m)
+@dataclass
+class _SortedByS:
+    """The points beyond the edge in order of station (s, their offset w from the edge, station index
+    k, which never decreases along s), with `order` their indices in the unsorted arrays. A straight
+    line w = a + b s can only pass within `tol` of them over the s where it lies inside their range
+    of w, one slice of this order."""
+
+    order: np.ndarray
+    s: np.ndarray
+    w: np.ndarray
+    k: np.ndarray
+    w_range: tuple[float, float]
+
+    @classmethod
+    def of(cls, s: np.ndarray, w: np.ndarray, k: np.ndarray) -> _SortedByS:
+        order = np.argsort(s, kind="stable")
+        return cls(order, s[order], w[order], k[order], (float(w.min()), float(w.max())) if len(w) else (0.0, 0.0))
+
+    def reach(self, line: tuple[float, float], tol: float) -> slice:
+        """The slice that holds every point within `tol` of the line (1 m of s to spare)."""
+        a, b = line
+        if abs(b) < 1e-6 or len(self.s) == 0:
+            return slice(0, len(self.s))
+        s0, s1 = sorted(((self.w_range[0] - tol - a) / b, (self.w_range[1] + tol - a) / b))
+        return slice(np.searchsorted(self.s, s0 - 1.0, "left"), np.searchsorted(self.s, s1 + 1.0, "right"))
+
+
+def _line_run(pts: _SortedByS, line: tuple[float, float], seed: tuple[float, float], step: float,
+              cfg: LanesConfig) -> np.ndarray:
+    """Indices (ascending, into the unsorted arrays) of the points on the line (within
+    `taper_line_tolerance_m`) in its stretch that overlaps the seed window most, stretches being split
+    at gaps over `taper_max_gap_m` without points."""
+    tol = cfg.taper_line_tolerance_m
+    near = pts.reach(line, tol)
+    on = near.start + np.flatnonzero(np.abs(pts.w[near] - (line[0] + line[1] * pts.s[near])) < tol)
     if len(on) == 0:
         return on
-    ks = np.flatnonzero(np.bincount(k[on]))
+    k_on = pts.k[on]
+    ks = k_on[np.r_[True, np.diff(k_on) != 0]]
     cut = np.flatnonzero(np.diff(ks) * step > cfg.taper_max_gap_m)
     firsts, lasts = ks[np.r_[0, cut + 1]], ks[np.r_[cut, len(ks) - 1]]
     stretch = np.zeros(len(ks), dtype=np.int64)
     stretch[cut + 1] = 1
     in_seed = (ks * step >= seed[0]) & (ks * step < seed[1])
     j = int(np.argmax(np.bincount(np.cumsum(stretch)[in_seed], minlength=len(firsts))))
-    return on[(k[on] >= firsts[j]) & (k[on] <= lasts[j])]
+    return np.sort(pts.order[on[(k_on >= firsts[j]) & (k_on <= lasts[j])]])
 
 
 def _taper_lanes(pts: _Points, structure: _Structure, side: int, step: float,
@@ -151,13 +182,14 @@ def _taper_lanes(pts: _Points, structure: _Structure, side: int, step: float,
     seen_lines: set[tuple[int, int]] = set()
     by_k: np.ndarray | None = None
     k_sorted = k_all
+    by_s = _SortedByS.of(s, w, k)
     for a, b, lo, hi in _straight_lines(s, w, k, step, cfg):
-        run = _line_run(s, w, k, (a, b), (lo, hi), step, cfg)
+        run = _line_run(by_s, (a, b), (lo, hi), step, cfg)
         for _ in range(20):
             if len(run) < 3:
                 break
             slope, icpt = np.polyfit(s[run], w[run], 1)
-            again = _line_run(s, w, k, (float(icpt), float(slope)), (lo, hi), step, cfg)
+            again = _line_run(by_s, (float(icpt), float(slope)), (lo, hi), step, cfg)
             if np.array_equal(again, run):
                 break
             run = again
