@@ -116,6 +116,15 @@ def test_adjacency_checked_on_each_pairs_own_stations_drops_what_the_whole_array
     assert want_dropped and want_on.any()
 
 
+def test_adjacency_of_lines_that_never_meet_drops_nothing() -> None:
+    """One line at a station at most (or none at all): no pair of neighbours, nothing dropped."""
+    t = np.full((3, 50), np.nan)
+    t[0, :20], t[1, 30:] = 1.0, -2.0
+    for on in (np.isfinite(t), np.zeros(t.shape, dtype=bool)):
+        got, dropped = _check_adjacency(t, on, np.arange(3), 1.0, _cfg())
+        assert np.array_equal(got, on) and dropped == []
+
+
 @pytest.mark.parametrize("seed", range(8))
 def test_duplicates_compared_on_overlapping_spans_only_are_the_whole_array_duplicates(seed: int) -> None:
     rng = np.random.default_rng(50 + seed)

@@ -195,7 +195,7 @@ def _check_adjacency(
     by_key = np.argsort(key[rows, cols], kind="stable")
     rows, cols = rows[by_key], cols[by_key]
     keys, first = np.unique(key[rows, cols], return_index=True)
-    cells = dict(zip(keys.tolist(), np.split(np.arange(len(rows)), first[1:]), strict=True))
+    cells = dict(zip(keys.tolist(), np.split(np.arange(len(rows)), first[1:]), strict=False))  # no cells: no key
     stable_len: dict[int, int] = {}
     for key_value, at in cells.items():
         c = cols[at]
