@@ -10,7 +10,7 @@ only when all of them succeeded: a build that fails writes none of them.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -140,31 +140,52 @@ class BuildPipeline:
         return cloud.trajectory if self.fusion is None else self.fusion.trajectories[0]
 
     def lanes(self, cloud: MarkingCloud) -> tuple[LaneModel, RoadNetwork]:
-        """The measured carriageway and, where it splits or merges, the roads joined by junctions."""
+        """The measured carriageway and, where it splits or merges, the roads joined by junctions.
+
+        The drive's object tracks (lane directions, the scenario) are read and smoothed in a process
+        of their own meanwhile (`scheduler.in_background`): the markings and lanes stages run on one
+        core, and the tracks' smoothing splines take as long again on a busy road."""
         from lidar2xodr.branches import build_network
         from lidar2xodr.lanes import build_lane_model
         from lidar2xodr.markings import find_candidates
 
-        with self._stage("markings"):
-            candidates = find_candidates(cloud.xyz, self.config.markings)
-        with self._stage("lanes"):
-            model = build_lane_model(cloud, candidates, self.config.lanes)
-            model.warnings.extend(self._traffic_directions(model, cloud))
-            network = build_network(cloud, model, self.config.lanes, self.config.markings, where=str(self.drive))
+        with self._tracks_beside(cloud) as tracks:
+            with self._stage("markings"):
+                candidates = find_candidates(cloud.xyz, self.config.markings)
+            with self._stage("lanes"):
+                model = build_lane_model(cloud, candidates, self.config.lanes)
+                model.warnings.extend(self._traffic_directions(model, cloud, tracks))
+                network = build_network(cloud, model, self.config.lanes, self.config.markings, where=str(self.drive))
         return model, network
 
-    def _traffic_directions(self, model: LaneModel, cloud: MarkingCloud) -> list[str]:
+    @contextmanager
+    def _tracks_beside(self, cloud: MarkingCloud) -> Iterator[Callable[[], Any] | None]:
+        """`result()` of `tracks.load_tracks` for the lane directions, started in the background now;
+        None where the lane directions do not use them (their option off, the first drive left out)."""
+        from functools import partial
+
+        from lidar2xodr.scheduler import in_background
+        from lidar2xodr.tracks import load_tracks
+
+        ego = self._ego(cloud)
+        if not self.config.lanes.traffic_directions or ego is None:
+            yield None
+            return
+        with in_background(partial(load_tracks, cfg=self.config), self.drive, ego) as result:
+            yield result
+
+    def _traffic_directions(self, model: LaneModel, cloud: MarkingCloud,
+                            tracks: Callable[[], Any] | None) -> list[str]:
         """Dividers from the recorded traffic's directions (lane_directions.py); no object list, no change."""
         from lidar2xodr.lane_directions import apply_traffic_directions
-        from lidar2xodr.tracks import load_tracks
 
         if not self.config.lanes.traffic_directions:
             return []
         ego = self._ego(cloud)
-        if ego is None:
+        if ego is None or tracks is None:
             return [f"the object list of {self.drive} was not used for lane directions: the drive was left out"]
         try:
-            self._tracks = load_tracks(self.drive, ego, cfg=self.config)
+            self._tracks = tracks()
         except InputError as exc:
             if exc.problem.startswith(("no object tracks found", "unknown track format")):
                 return []

@@ -74,6 +74,59 @@ def task_runner(job: Any, workers: int, scheduler: str | None) -> Iterator[Calla
         yield lambda fn, *args: client.submit(fn, shared, *args, pure=False)
 
 
+def _background_main(send: Any, parent_pid: int, fn: Callable[..., Any], args: tuple[Any, ...]) -> None:
+    """The background process: runs fn(*args) and sends ("ok", value), ("input", (where, problem)) or
+    ("error", text) back: an InputError keeps its file and problem, any other error its text."""
+    _pool_init(None, parent_pid)
+    try:
+        out: tuple[str, Any] = ("ok", fn(*args))
+    except InputError as exc:
+        out = ("input", (exc.where, exc.problem))
+    except Exception as exc:  # noqa: BLE001 - a bug in fn is the parent's to report
+        out = ("error", f"{type(exc).__name__}: {exc}")
+    send.send(out)
+    send.close()
+
+
+@contextmanager
+def in_background(fn: Callable[..., Any], *args: Any) -> Iterator[Callable[[], Any]]:
+    """Start fn(*args) in a forked process now; yield `result()`, which waits for it and returns its
+    value (or raises its InputError, or a RuntimeError naming another error). The process inherits the
+    arguments without pickling them, dies with the build, and is killed when the block is left
+    without taking its result (an error elsewhere need not wait for it).
+
+    The build's lanes stage runs on one core: work that does not depend on it (the object tracks'
+    smoothing) runs beside it on the others instead of after it."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("fork")
+    recv, send = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_background_main, args=(send, os.getpid(), fn, args))
+    proc.start()
+    send.close()
+
+    def result() -> Any:
+        try:
+            kind, value = recv.recv()
+        except EOFError:
+            proc.join()
+            raise RuntimeError(f"the background process ended without a result (exit code {proc.exitcode})") from None
+        proc.join()
+        if kind == "input":
+            raise InputError(*value)
+        if kind == "error":
+            raise RuntimeError(value)
+        return value
+
+    try:
+        yield result
+    finally:
+        if proc.is_alive():
+            proc.kill()
+        proc.join()
+        recv.close()
+
+
 @contextmanager
 def dask_client(scheduler: str, workers: int) -> Iterator[Any]:
     """A `distributed.Client`: of a new LocalCluster ('local') or connected to the scheduler at an address."""
