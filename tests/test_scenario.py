@@ -478,3 +478,25 @@ def test_tracks_smoothed_on_worker_processes_are_the_same_bytes() -> None:
     for (s_xyz, s_vel), (p_xyz, p_vel) in zip(serial, pooled, strict=True):
         assert s_xyz.tobytes() == p_xyz.tobytes() and s_vel.tobytes() == p_vel.tobytes()
     assert not np.allclose(serial[0][0][:, 0], items[0][1][:, 0]), "the tracks were smoothed"
+
+
+def test_the_tracks_are_smoothed_on_as_many_processes_as_asked(tmp_path: Path, monkeypatch) -> None:
+    """`load_tracks(workers=...)` overrides the configuration's count (the build smooths the tracks
+    beside its lanes stage on the cores that stage leaves); the tracks are the same either way."""
+    import lidar2xodr.tracks as tracks_mod
+    from lidar2xodr.config import Config
+
+    drive = _write_drive(tmp_path / "d", _truth(), noise=0.05, seed=3)
+    cfg = Config.model_validate({"extraction": {"workers": 2}})
+    asked: list[int] = []
+    smooth_all = tracks_mod._smooth_all
+
+    def counted(items: list, workers: int) -> list:
+        asked.append(workers)
+        return smooth_all(items, workers)
+
+    monkeypatch.setattr(tracks_mod, "_smooth_all", counted)
+    default = load_tracks(drive, None, cfg=cfg)
+    one = load_tracks(drive, None, cfg=cfg, workers=1)
+    assert asked == [2, 1]
+    assert [t.xyz.tobytes() for t in default.tracks] == [t.xyz.tobytes() for t in one.tracks]

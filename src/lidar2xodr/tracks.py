@@ -173,11 +173,14 @@ def load_tracks(
     *,
     cfg: Config | ScenarioConfig | None = None,
     geo_reference: str | None = None,
+    workers: int | None = None,
 ) -> TrackSet:
     """Read, associate, clean and smooth the object tracks of a recording (see the module doc).
 
     `ego` (T_world_vehicle) places vehicle-frame detections; `geo_reference` (a PROJ string, e.g. the
-    map's) is the frame GNSS-only inputs are projected into.
+    map's) is the frame GNSS-only inputs are projected into. The tracks are smoothed on `workers`
+    processes (default: the extraction's `workers` with a full `Config`, else one); the result is the
+    same on any number.
     """
     scfg = cfg.scenario if isinstance(cfg, Config) else (cfg or ScenarioConfig())
     path = Path(path_or_drive)
@@ -200,11 +203,12 @@ def load_tracks(
     ego = ego if ego is not None else own_ego
     counts: Counter[str] = Counter(detections=len(det.time))
     det = _to_world(det, ego, counts)
-    workers = 1
-    if isinstance(cfg, Config):
-        from lidar2xodr.extraction import worker_count
+    if workers is None:
+        workers = 1
+        if isinstance(cfg, Config):
+            from lidar2xodr.extraction import worker_count
 
-        workers = worker_count(cfg.extraction)
+            workers = worker_count(cfg.extraction)
     tracks = _build_tracks(det, ego, scfg, counts, warnings, workers)
     dropped = counts["dropped_short"] + counts["dropped_jumpy"]
     _warn_counts(det.source, counts, warnings)
