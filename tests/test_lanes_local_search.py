@@ -23,7 +23,6 @@ from lidar2xodr.lanes.structure import (
 )
 from lidar2xodr.lanes.tapers import _line_run, _SortedByS, _straight_lines
 
-
 _LANES = np.array([7.0, 3.5, 0.0, -3.5, -7.0, -8.2, -10.5, -10.8, -25.0, -28.5])
 
 
@@ -255,8 +254,8 @@ def test_a_taper_line_searched_on_the_stretch_it_can_reach_finds_the_points_of_a
     cfg = _cfg()
     pts = _SortedByS.of(s, w, k)
     seeds = _straight_lines(s, w, k, step, cfg)
-    lines = [(a, b, lo, hi) for a, b, lo, hi in seeds] + [(1.2, 0.0, 0.0, 5000.0), (1.2, 1e-8, 0.0, 5000.0), (1.2, 2e-4, 100.0, 200.0),
-                                                          (40.0, 0.05, 0.0, 100.0)]
+    lines = [(a, b, lo, hi) for a, b, lo, hi in seeds] + [
+        (1.2, 0.0, 0.0, 5000.0), (1.2, 1e-8, 0.0, 5000.0), (1.2, 2e-4, 100.0, 200.0), (40.0, 0.05, 0.0, 100.0)]
     found = 0
     for a, b, lo, hi in lines:
         got = _line_run(pts, (a, b), (lo, hi), step, cfg)
