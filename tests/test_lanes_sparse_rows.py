@@ -10,7 +10,7 @@ import pytest
 from lidar2xodr.config import LanesConfig
 from lidar2xodr.lanes.dividers import _divided_left
 from lidar2xodr.lanes.structure import _choose_carriageway, _sorted_columns
-from lidar2xodr.lanes.tracks import _bridge_gaps, _Lines, _robust_curve, _robust_curve_window, _slope_at
+from lidar2xodr.lanes.tracks import _bridge_gaps, _groups, _Lines, _robust_curve, _robust_curve_window, _slope_at
 
 
 def _sparse_lines(rng: np.random.Generator, n: int, m: int) -> np.ndarray:
@@ -218,3 +218,15 @@ def test_the_carriageway_chosen_per_station_at_once_is_the_one_chosen_group_by_g
     want = _choose_carriageway_by_group(t, on, t_ego, solid, support, cfg)
     assert np.array_equal(got, want)
     assert got.any() and (got.sum(axis=0) < on.sum(axis=0)).any()
+
+
+@pytest.mark.parametrize("n", [0, 1, 40, 3000])
+def test_items_grouped_by_one_sort_are_the_items_found_key_by_key(n: int) -> None:
+    """The double-line fold's blocks: each block's points, ascending, as `np.flatnonzero(blocks == b)`
+    over `np.unique(blocks)` gave them."""
+    rng = np.random.default_rng(n)
+    blocks = rng.integers(-3, max(n // 20, 1), n)
+    got = _groups(blocks)
+    want = [(int(b), np.flatnonzero(blocks == b)) for b in np.unique(blocks)]
+    assert [b for b, _ in got] == [b for b, _ in want]
+    assert all(np.array_equal(x, y) for (_, x), (_, y) in zip(got, want, strict=True))
