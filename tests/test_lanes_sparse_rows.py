@@ -9,8 +9,9 @@ import pytest
 
 from lidar2xodr.config import LanesConfig
 from lidar2xodr.lanes.dividers import _divided_left
+from lidar2xodr.lanes.smoothing import _groups
 from lidar2xodr.lanes.structure import _choose_carriageway, _sorted_columns
-from lidar2xodr.lanes.tracks import _bridge_gaps, _groups, _Lines, _robust_curve, _robust_curve_window, _slope_at
+from lidar2xodr.lanes.tracks import _bridge_gaps, _Lines, _robust_curve, _robust_curve_window, _slope_at
 
 
 def _sparse_lines(rng: np.random.Generator, n: int, m: int) -> np.ndarray:

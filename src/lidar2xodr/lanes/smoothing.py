@@ -60,3 +60,11 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     """[start, end) of every run of True."""
     d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
     return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1), strict=False))
+
+
+def _groups(keys: np.ndarray) -> list[tuple[int, np.ndarray]]:
+    """(key, ascending indices of its items) for every distinct key, keys ascending: one stable sort
+    instead of a comparison over all items per key (a long line has hundreds of blocks)."""
+    order = np.argsort(keys, kind="stable")
+    ids, first = np.unique(keys[order], return_index=True)
+    return list(zip(ids.tolist(), np.split(order, first[1:]), strict=True)) if len(keys) else []

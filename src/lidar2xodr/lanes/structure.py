@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lidar2xodr.config import LanesConfig
-from lidar2xodr.lanes.smoothing import _runs
+from lidar2xodr.lanes.smoothing import _groups, _runs
 from lidar2xodr.lanes.tracks import _ABSENT_RUN, _Observed
 
 
@@ -192,10 +192,7 @@ def _check_adjacency(
     width = ts[:-1] - ts[1:]
     key = np.where(valid, upper * b_n + lower, -1)
     rows, cols = np.nonzero(valid)  # row by row; a pair of neighbours meets at most once per station
-    by_key = np.argsort(key[rows, cols], kind="stable")
-    rows, cols = rows[by_key], cols[by_key]
-    keys, first = np.unique(key[rows, cols], return_index=True)
-    cells = dict(zip(keys.tolist(), np.split(np.arange(len(rows)), first[1:]), strict=False))  # no cells: no key
+    cells = dict(_groups(key[rows, cols]))
     stable_len: dict[int, int] = {}
     for key_value, at in cells.items():
         c = cols[at]

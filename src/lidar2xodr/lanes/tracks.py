@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lidar2xodr.lanes.smoothing import _runs, _tukey_fit, _whittaker_points
+from lidar2xodr.lanes.smoothing import _groups, _runs, _tukey_fit, _whittaker_points
 
 _ABSENT_RUN = 20  # stations (m) a line must be seen to be absent before it is no longer carried
 _ALONG_SLOPE = 0.1  # lines joined across a gap run along the road there (within ~6 deg of the frame)
@@ -145,14 +145,6 @@ def _two_modes(r: np.ndarray) -> tuple[float, float, np.ndarray] | None:
     if c1 - c0 < 4.0 * max(float(r[~hi].std()), float(r[hi].std())):
         return None
     return c0, c1, hi
-
-
-def _groups(keys: np.ndarray) -> list[tuple[int, np.ndarray]]:
-    """(key, ascending indices of its items) for every distinct key, keys ascending: one stable sort
-    instead of a comparison over all items per key (a long line has hundreds of blocks)."""
-    order = np.argsort(keys, kind="stable")
-    ids, first = np.unique(keys[order], return_index=True)
-    return list(zip(ids.tolist(), np.split(order, first[1:]), strict=True)) if len(keys) else []
 
 
 def _fold_double_lines(k: np.ndarray, t: np.ndarray, lam: float, double: tuple[float, int]
@@ -305,14 +297,22 @@ class _Lines:
 
     def value_at(self, row: np.ndarray, k: np.ndarray) -> np.ndarray:
         """Offset of line row[i] at station k[i] (NaN where it has none)."""
+        return self.lookup()(row, k)
+
+    def lookup(self) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+        """`value_at` with the lines laid end to end once, for several lookups while they do not change."""
         lens = np.array([len(x) for x in self.t], dtype=np.int64)
         start = np.concatenate([[0], np.cumsum(lens)[:-1]]) if len(lens) else lens
         flat = np.concatenate(self.t) if len(self.t) else np.empty(0)
-        j = k - self.lo[row]
-        ok = (j >= 0) & (j < lens[row])
-        out = np.full(len(k), np.nan)
-        out[ok] = flat[start[row[ok]] + j[ok]]
-        return out
+
+        def value_at(row: np.ndarray, k: np.ndarray) -> np.ndarray:
+            j = k - self.lo[row]
+            ok = (j >= 0) & (j < lens[row])
+            out = np.full(len(k), np.nan)
+            out[ok] = flat[start[row[ok]] + j[ok]]
+            return out
+
+        return value_at
 
 
 def _fit_boundaries(
@@ -543,9 +543,10 @@ def _crossing_points(lines: _Lines, label: np.ndarray, k: np.ndarray, t: np.ndar
     """Points on a fitted line that runs across the road there (offset changing by more than
     `_ALONG_SLOPE` per station: a ramp, a crossing line), not along it."""
     row = np.maximum(label, 0)
+    value_at = lines.lookup()
     with np.errstate(invalid="ignore"):
-        return (label >= 0) & (np.abs(t - lines.value_at(row, k)) <= tol) & (
-            _slope_at(lines.value_at, row, k, lines.m) > _ALONG_SLOPE)
+        return (label >= 0) & (np.abs(t - value_at(row, k)) <= tol) & (
+            _slope_at(value_at, row, k, lines.m) > _ALONG_SLOPE)
 
 
 def _slope_at(value_at: Callable[[np.ndarray, np.ndarray], np.ndarray], row: np.ndarray, k: np.ndarray,
