@@ -98,7 +98,8 @@ def test_reframe_moves_the_start_and_keeps_the_boundaries_in_the_world() -> None
 
 def test_network_file_round_trip_and_single_road_files(tmp_path) -> None:
     a, b = slice_model(_road(), 0, 150), slice_model(_road(), 150, 300, drop={2})
-    net = RoadNetwork([a, b], [RoadLink(0, 1, [(0, 0)], True, open_in=[1])], ["w"])
+    net = RoadNetwork([a, b], [RoadLink(0, 1, [(0, 0)], True, open_in=[1]), RoadLink(0, 1, [], True, open_out=[0])],
+                      ["w"])
     path = tmp_path / "lanes.json"
     save_network(net, path)
     back = load_network(path)
@@ -128,6 +129,23 @@ def test_a_lane_into_a_branch_that_was_not_built_is_open_at_the_junction() -> No
     assert len(net.roads) == 2 and len(net.links) == 1
     assert net.links[0].continuation and net.links[0].open_in == [1]
     assert any("measured width" in w for w in net.warnings)
+
+
+def test_a_lane_from_a_ramp_that_was_not_built_is_open_at_the_junction() -> None:
+    """An on-ramp with one painted line cannot be built as a road of its own; the lane it brings
+    still starts at the junction at full width: the continuation link names it in `open_out`."""
+    cfg = Config()
+    s = np.arange(0.0, 301.0, 1.0)
+    bounds = [Boundary(0, np.full_like(s, 3.5)), Boundary(1, np.zeros_like(s), "broken"),
+              Boundary(2, np.full_like(s, -3.5), "broken"), Boundary(3, np.where(s >= 100, -7.0, np.nan))]
+    sections = [LaneSection(0.0, 100.0, [0, 1, 2]), LaneSection(100.0, 300.0, [0, 1, 2, 3])]
+    road = LaneModel(s=s, reference=np.stack([s, 0 * s, 0 * s], axis=1), boundaries=bounds, sections=sections)
+    net = build_network(_cloud(np.zeros((0, 2))), road, cfg.lanes, cfg.markings)
+    assert len(net.roads) == 2 and len(net.links) == 1
+    link = net.links[0]
+    assert link.continuation and link.open_out == [2] and link.open_in == []
+    assert net.roads[1].sections[0].boundary_ids == [0, 1, 2, 3]
+    assert any("starts at the junction at its measured width" in w for w in net.warnings)
 
 
 def _cloud(xy: np.ndarray) -> MarkingCloud:

@@ -251,6 +251,25 @@ def test_a_lane_into_a_branch_that_was_not_built_ends_at_full_width(written) -> 
     assert ls.lanes[-1].width(np.array([a2.length - ls.s]))[0] == pytest.approx(LANE, abs=0.02)
 
 
+def test_a_lane_from_a_ramp_that_was_not_built_starts_at_full_width(tmp_path: Path) -> None:
+    """A lane that joins from an on-ramp seen too little to be built (one painted line: the link's
+    `open_out`) starts at the junction at its measured width; without it, it opens from 0 over the
+    taper (on roadgen corridors and Ex_Entry_Exit the acceleration lane was under 1.75 m wide for its
+    first ~30 m while the truth's is full width from the junction)."""
+    network = _merge()[0]
+    a, b = network.roads[0], network.roads[1]
+    widths = {}
+    for name, open_out in (("taper", []), ("open", [1])):
+        net = RoadNetwork([a, b], [RoadLink(0, 1, [(0, 0)], continuation=True, open_out=open_out)])
+        path = tmp_path / f"{name}.xodr"
+        export_network(net, None, ExportConfig(), path, _direct=True)
+        road = OpenDriveMap.load(path).roads["2"]
+        ls = road.lane_sections[0]
+        widths[name] = [float(ls.lanes[-2].width(np.array([d]))[0]) for d in (0.0, 10.0)]
+    assert widths["open"] == pytest.approx([LANE, LANE], abs=0.02)
+    assert widths["taper"][0] <= 1e-6 and widths["taper"][1] < 0.5 * LANE
+
+
 def test_elevation_and_banking_meet_at_the_junction(written) -> None:
     _, _, path, _ = written["diverge"]
     odr = OpenDriveMap.load(path)

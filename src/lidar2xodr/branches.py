@@ -507,13 +507,17 @@ def build_network(cloud: MarkingCloud, main: LaneModel, lanes_cfg: LanesConfig, 
     roads = [road_a, road_b]
     links = [RoadLink(0, 1, _lane_links(road_a, road_b), continuation=True)]
     if branch is None:
-        if diverge:
-            # the lane goes on into the branch that was not built: it ends at full width, not in a taper
-            ids = road_a.sections[-1].boundary_ids
-            if lost in ids:
-                links[0].open_in = [ids.index(lost) - 1 if ev.side == "right" else ids.index(lost)]
+        # the lane goes on into (comes from) the road that was not built: it ends (starts) at the
+        # junction at its measured width, not in a taper
+        ids = (road_a.sections[-1] if diverge else road_b.sections[0]).boundary_ids
+        if lost in ids:
+            lane = [ids.index(lost) - 1 if ev.side == "right" else ids.index(lost)]
+            if diverge:
+                links[0].open_in = lane
+            else:
+                links[0].open_out = lane
         warnings.append(f"{label} was not built as a road of its own ({why}): it "
-                        f"{'ends at the junction at its measured width' if diverge else 'ends at the junction'}")
+                        f"{'ends' if diverge else 'starts'} at the junction at its measured width")
         return RoadNetwork(roads, links, warnings + _further(road_b if diverge else road_a, lanes_cfg))
     roads.append(branch)
     at = 0 if diverge else -1
@@ -622,7 +626,8 @@ def save_network(network: RoadNetwork, path: str | Path) -> None:
         extra = {
             "roads": [model_dict(r) for r in network.roads],
             "links": [{"incoming": lk.incoming, "outgoing": lk.outgoing, "lanes": [list(p) for p in lk.lanes],
-                       "continuation": lk.continuation, "open_in": list(lk.open_in)} for lk in network.links],
+                       "continuation": lk.continuation, "open_in": list(lk.open_in),
+                       "open_out": list(lk.open_out)} for lk in network.links],
             "warnings": list(network.warnings),
         }
     save_lanes(network.roads[0], path, network=extra)
@@ -642,7 +647,8 @@ def load_network(path: str | Path) -> RoadNetwork:
         links = []
         for j, lk in enumerate(net["links"]):
             link = RoadLink(int(lk["incoming"]), int(lk["outgoing"]), [(int(a), int(b)) for a, b in lk["lanes"]],
-                            bool(lk["continuation"]), [int(i) for i in lk.get("open_in", [])])
+                            bool(lk["continuation"]), [int(i) for i in lk.get("open_in", [])],
+                            [int(i) for i in lk.get("open_out", [])])
             if not (0 <= link.incoming < len(roads) and 0 <= link.outgoing < len(roads)):
                 raise InputError(f"{path} network link {j}", f"names a road outside 0..{len(roads) - 1}")
             links.append(link)

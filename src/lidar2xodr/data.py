@@ -163,7 +163,10 @@ class RoadLink:
     of the two is a branch that diverges from (or a ramp that merges into) the other.
     `open_in`: lanes of the incoming road's last section that leave to a road that was not built (a
     branch seen too little to measure): they end at their measured width there, as a lane linked
-    into a branch does, instead of closing to width 0.
+    into a branch does, instead of closing to width 0. `open_out`: likewise lanes of the outgoing
+    road's first section that join from a road that was not built (an on-ramp with one painted
+    line): they start at their measured width, as a lane linked from a ramp does, instead of opening
+    from width 0.
     """
 
     incoming: int  # index into RoadNetwork.roads
@@ -171,6 +174,7 @@ class RoadLink:
     lanes: list[tuple[int, int]]
     continuation: bool = True
     open_in: list[int] = field(default_factory=list)
+    open_out: list[int] = field(default_factory=list)
 
 
 @dataclass

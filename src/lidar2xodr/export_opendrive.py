@@ -90,7 +90,8 @@ Networks (`export_network`; `export_opendrive` is a network of one road, same by
   and dt/ds (a laneOffset constraint given the widths), elevation its value and slope (surface
   height at that t), superelevation its roll. Linked borders therefore meet to ~1e-12 m with the
   same direction. Lanes of a junction end linked to nothing start (end) at width 0 along the taper;
-  a lane linked into a branch simply ends at full width (it goes on there).
+  a lane linked into a branch simply ends at full width (it goes on there), and so does a lane that
+  leaves to or joins from a road that was not built (`RoadLink.open_in` / `open_out`).
 - A branch's model (within ~0.3 m at the junction) is first bent onto its anchor: the middle of its
   linked lanes moves onto the anchor point and its heading turns onto the anchor's, the rotation
   and shift fading with a smoothstep over `junction_blend_m` (30 m, or the road's length), so the
@@ -1621,7 +1622,7 @@ def export_network(network: RoadNetwork, planes: GroundPlanes | None, cfg: Expor
     linked: dict[tuple[int, bool], set[int]] = {}
     for link in network.links:
         linked.setdefault((link.incoming, True), set()).update([int(i) for i, _ in link.lanes] + link.open_in)
-        linked.setdefault((link.outgoing, False), set()).update(int(j) for _, j in link.lanes)
+        linked.setdefault((link.outgoing, False), set()).update([int(j) for _, j in link.lanes] + link.open_out)
 
     built: dict[int, _Built] = {}
     for r in order:
