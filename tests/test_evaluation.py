@@ -338,6 +338,16 @@ def test_driven_share_is_the_built_part_of_the_road_the_drive_travelled(tmp_path
     assert wrong_way["driven_m"] == 0.0, "against the only carriageway's travel direction: not a driven road"
 
 
+def test_the_drive_is_on_the_map_across_a_seam_where_a_lane_appears_at_full_width(tmp_path: Path) -> None:
+    """Road 1 (two lanes) ends where road 2 (three lanes, the third at full width: an on-ramp's lane)
+    begins. Road 2's carriageway centre lies 1.75 m beside road 1's, so the samples just past road
+    1's end are nearest its last vertex, beyond it; road 2 holds them, and the drive is on the map."""
+    seam = _map(tmp_path / "seam.xodr", _road("1", 150.0),
+                _road("2", 150.0, right=(MEDIAN, DRV, DRV, DRV), x=150.0))
+    along = _trajectory(tmp_path / "along.csv", [(float(x), -2.75) for x in range(0, 301, 10)])
+    assert path_on_map(seam, load_trajectory(along), CFG)["share"] == pytest.approx(1.0)
+
+
 def test_compare_trajectory_bad_input_is_one_line(tmp_path: Path) -> None:
     ref = _map(tmp_path / "ref.xodr", _road("1", 300.0))
     bad = tmp_path / "bad.csv"

@@ -124,6 +124,9 @@ JUNCTION_BUNDLE_SHARE = 0.9
 JUNCTION_BUNDLE_HEADING_DEG = 20.0
 """...and travelling the same way within this."""
 _K_NEAREST = 4
+_K_ON = 16
+"""Vertices searched for the carriageways that may hold a driven sample (8 m of one line at 0.5 m
+samples: a neighbouring road's centre up to a half lane beside its end is among them)."""
 
 
 @dataclass
@@ -594,11 +597,38 @@ def _path_samples(path: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray
 
 
 def _on_carriageway(cw: Carriageways, q: np.ndarray, hdg: np.ndarray, tol: float) -> np.ndarray:
-    """Whether each sample lies on a carriageway of its own travel direction, beside it (rule 9)."""
+    """Whether each sample lies on a carriageway of its own travel direction, beside it (rule 9).
+
+    Each centre line among the `_K_ON` nearest vertices of agreeing heading is judged at its own
+    nearest vertex, and any may hold the sample, not only the nearest line: where a lane appears at
+    full width at a road's end, the next road's centre jumps sideways, and the samples just past the
+    first road's end are nearest its last vertex, beyond it."""
+    held = np.zeros(len(q), bool)
     if len(cw.centre.xy) == 0 or len(q) == 0:
-        return np.zeros(len(q), bool)
-    d, v, past = nearest(cw.centre, q, hdg, tol)
-    return (d <= cw.half_width[v]) & ~past & (np.abs(wrap_angle(cw.centre.hdg[v] - hdg)) <= tol)
+        return held
+    lines = cw.centre
+    line_of = np.cumsum(lines.prv < 0) - 1
+    bin_rad = math.radians(HEADING_BIN_DEG)
+    q_bin = np.floor(np.mod(hdg, 2.0 * math.pi) / bin_rad).astype(int) % round(2.0 * math.pi / bin_rad)
+    for b in np.unique(q_bin):
+        sub = np.flatnonzero(np.abs(wrap_angle(lines.hdg - (b + 0.5) * bin_rad)) <= tol)
+        if not len(sub):
+            continue
+        sel = np.flatnonzero(q_bin == b)
+        k = min(_K_ON, len(sub))
+        _, cand = cKDTree(lines.xy[sub]).query(q[sel], k=k)
+        cand = sub[np.asarray(cand).reshape(len(sel), k)]
+        d, past = _segment_distance(lines, q[sel], cand)
+        line = line_of[cand]
+        same_line = line[:, :, None] == line[:, None, :]
+        order = np.arange(k)
+        # a vertex is its line's own when no other of that line is nearer, ties to the nearer vertex (the
+        # query's order): the last vertex of a line the sample is past, not the one before, at the same d
+        ahead = (d[:, None, :] < d[:, :, None]) | ((d[:, None, :] == d[:, :, None]) & (order[None, :] < order[:, None]))
+        nearest_of_line = ~np.any(same_line & ahead, axis=2)
+        same_way = np.abs(wrap_angle(lines.hdg[cand] - hdg[sel, None])) <= tol
+        held[sel] = np.any(nearest_of_line & (d <= cw.half_width[cand]) & ~past & same_way, axis=1)
+    return held
 
 
 def _driven(gen: Carriageways, ref: Carriageways, path: np.ndarray, step: float, tol: float) -> dict[str, float]:
