@@ -57,6 +57,9 @@ _NEW_LANE_SHARE = 0.7
 _GORE_M = 15.0
 _DASH_GAP_M = 1.0  # no marking point over this length of a line: a gap between dashes
 _MAX_HEADING_DEG = 30.0
+_NOSE_MARGIN_M = 0.5  # a point this far inside a lane from both its lines is on neither
+_NOSE_MIN_POINTS = 20  # fewer points inside the lane are clutter, not a ramp's line
+_NOSE_MIN_PER_STATION = 5  # the line's last station holds this many (a stray return lies beyond it)
 
 
 @dataclass
@@ -478,6 +481,12 @@ def build_network(cloud: MarkingCloud, main: LaneModel, lanes_cfg: LanesConfig, 
             road_a2, road_b2, raw2, branch2, why2 = attempt(replace(ev, k=k_meet))
             if branch2 is not None:
                 ev, road_a, road_b, branch, why = replace(ev, k=k_meet), road_a2, road_b2, branch2, why2
+    if branch is None and not diverge:
+        # no ramp road: the lane joins where the ramp's inner line reaches the road, not before
+        k_nose = _ramp_nose(xy, main, ev)
+        if k_nose is not None and k_nose > ev.k:
+            ev = replace(ev, k=k_nose)
+            road_a, road_b = slice_model(main, 0, ev.k, drop={lost}), slice_model(main, ev.k, last)
     if len(road_a.s) < 5 or len(road_b.s) < 5 or not road_a.sections or not road_b.sections:
         return RoadNetwork([main], [], warnings)
     label = f"the lane {'leaving' if diverge else 'joining'} on the {ev.side} at s {main.s[ev.k]:.0f} m"
@@ -596,6 +605,35 @@ def _meeting_station(branch: LaneModel, main: LaneModel, ev: Event) -> int | Non
     d = np.where(ok, d, np.inf)
     best = int(np.argmin(d))
     return int(ks[best]) if d[best] <= 0.5 * abs(float(left[best] - right[best])) else None
+
+
+def _ramp_nose(xy: np.ndarray, main: LaneModel, ev: Event) -> int | None:
+    """The last station (within 3 gore lengths after the junction, in the lane's section) with
+    `_NOSE_MIN_PER_STATION` marking points inside the joining lane, `_NOSE_MARGIN_M` from both its
+    lines: the ramp's inner line, still converging onto the road's edge. None when fewer than
+    `_NOSE_MIN_POINTS` lie there (a ramp whose inner edge is unpainted, or one that meets the road
+    before the junction).
+
+    Where the lane's outer line was held back beyond its paint, the joining lane began at full width
+    up to 25 m before the gore nose (esmini highway_merge), where the ramp still runs apart."""
+    sec = main.sections[ev.section]
+    by_id = {b.id: b for b in main.boundaries}
+    ks = _stations_of(main, sec)
+    gore = int(round(_GORE_M / max(float(main.s[1] - main.s[0]), 1e-6)))
+    ks = ks[(ks >= ev.k) & (ks <= ev.k + 3 * gore)]
+    if not len(ks):
+        return None
+    k, t = _project(main, xy)
+    on = np.isin(k, ks)
+    k, t = k[on], t[on]
+    left, right = by_id[sec.boundary_ids[ev.lane]].t[k], by_id[sec.boundary_ids[ev.lane + 1]].t[k]
+    with np.errstate(invalid="ignore"):
+        inside = (t < left - _NOSE_MARGIN_M) & (t > right + _NOSE_MARGIN_M)
+    if inside.sum() < _NOSE_MIN_POINTS:
+        return None
+    counts = np.bincount(k[inside] - ks[0], minlength=len(ks))
+    held = np.flatnonzero(counts >= _NOSE_MIN_PER_STATION)
+    return int(ks[0] + held[-1]) if len(held) else None
 
 
 def _further(rest: LaneModel, cfg: LanesConfig) -> list[str]:
