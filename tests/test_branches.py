@@ -148,6 +148,27 @@ def test_a_lane_from_a_ramp_that_was_not_built_is_open_at_the_junction() -> None
     assert any("starts at the junction at its measured width" in w for w in net.warnings)
 
 
+def test_a_ramp_that_was_not_built_joins_where_its_inner_line_reaches_the_road() -> None:
+    """The joining lane's outer line was held back to s = 100 m beyond its paint, while the ramp's inner
+    line still converges onto the road's edge up to s = 125 m (esmini highway_merge): the lane joins,
+    at full width, where that line reaches the road. A ramp with an unpainted inner edge (no points
+    inside the lane) joins where the lane's section begins, as before."""
+    cfg = Config()
+    s = np.arange(0.0, 301.0, 1.0)
+    bounds = [Boundary(0, np.full_like(s, 3.5)), Boundary(1, np.zeros_like(s), "broken"),
+              Boundary(2, np.full_like(s, -3.5)), Boundary(3, np.where(s >= 100, -7.0, np.nan))]
+    sections = [LaneSection(0.0, 100.0, [0, 1, 2]), LaneSection(100.0, 300.0, [0, 1, 2, 3])]
+    road = LaneModel(s=s, reference=np.stack([s, 0 * s, 0 * s], axis=1), boundaries=bounds, sections=sections)
+    x = np.repeat(np.arange(100.0, 125.5, 0.5), 8)
+    inner = np.column_stack([x, -6.5 + 3.0 * (x - 100.0) / 25.0])  # from 3 m inside the lane to its inner line
+    net = build_network(_cloud(inner), road, cfg.lanes, cfg.markings)
+    assert net.links[0].open_out == [2]
+    assert 120.0 <= net.roads[0].s[-1] <= 125.0
+    assert [len(sec.boundary_ids) - 1 for sec in net.roads[0].sections] == [2]
+    plain = build_network(_cloud(np.zeros((0, 2))), road, cfg.lanes, cfg.markings)
+    assert plain.roads[0].s[-1] == 100.0
+
+
 def _cloud(xy: np.ndarray) -> MarkingCloud:
     n = len(xy)
     planes = GroundPlanes(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)))
