@@ -152,7 +152,7 @@ def test_a_ramp_that_was_not_built_joins_where_its_inner_line_reaches_the_road()
     """The joining lane's outer line was held back to s = 100 m beyond its paint, while the ramp's inner
     line still converges onto the road's edge up to s = 125 m (esmini highway_merge): the lane joins,
     at full width, where that line reaches the road. A ramp with an unpainted inner edge (no points
-    inside the lane) joins where the lane's section begins, as before."""
+    inside the lane), or paint hugging the road's edge, joins where the lane's section begins."""
     cfg = Config()
     s = np.arange(0.0, 301.0, 1.0)
     bounds = [Boundary(0, np.full_like(s, 3.5)), Boundary(1, np.zeros_like(s), "broken"),
@@ -167,6 +167,9 @@ def test_a_ramp_that_was_not_built_joins_where_its_inner_line_reaches_the_road()
     assert [len(sec.boundary_ids) - 1 for sec in net.roads[0].sections] == [2]
     plain = build_network(_cloud(np.zeros((0, 2))), road, cfg.lanes, cfg.markings)
     assert plain.roads[0].s[-1] == 100.0
+    x = np.repeat(np.arange(100.0, 110.5, 0.5), 8)
+    hugging = np.column_stack([x, np.full(len(x), -4.2)])  # 0.7 m beside the road's edge: not a ramp's line
+    assert build_network(_cloud(hugging), road, cfg.lanes, cfg.markings).roads[0].s[-1] == 100.0
 
 
 def _cloud(xy: np.ndarray) -> MarkingCloud:

@@ -612,7 +612,8 @@ def _ramp_nose(xy: np.ndarray, main: LaneModel, ev: Event) -> int | None:
     `_NOSE_MIN_PER_STATION` marking points inside the joining lane, `_NOSE_MARGIN_M` from both its
     lines: the ramp's inner line, still converging onto the road's edge. None when fewer than
     `_NOSE_MIN_POINTS` lie there (a ramp whose inner edge is unpainted, or one that meets the road
-    before the junction).
+    before the junction), or when none lies half a lane from the road's edge (paint hugging the edge
+    is not a ramp's line crossing the lane: roadgen corridor_012 s1 has such points 0.6-0.8 m beside it).
 
     Where the lane's outer line was held back beyond its paint, the joining lane began at full width
     up to 25 m before the gore nose (esmini highway_merge), where the ramp still runs apart."""
@@ -630,6 +631,10 @@ def _ramp_nose(xy: np.ndarray, main: LaneModel, ev: Event) -> int | None:
     with np.errstate(invalid="ignore"):
         inside = (t < left - _NOSE_MARGIN_M) & (t > right + _NOSE_MARGIN_M)
     if inside.sum() < _NOSE_MIN_POINTS:
+        return None
+    # the ramp's line crosses the lane towards the road: some of it lies half a lane from the road's edge
+    edge = left if ev.side == "right" else right
+    if not np.any(inside & (np.abs(t - edge) >= 0.5 * np.abs(left - right))):
         return None
     counts = np.bincount(k[inside] - ks[0], minlength=len(ks))
     held = np.flatnonzero(counts >= _NOSE_MIN_PER_STATION)
