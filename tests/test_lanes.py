@@ -692,3 +692,23 @@ def test_a_broken_line_is_fitted_from_its_first_dash_where_the_frame_runs_at_an_
     broken = np.flatnonzero(np.isfinite(curve))
     assert broken[0] == 0 and broken[-1] == dashes.max()
     assert np.max(np.abs(curve[broken] - (-1.5 + drift(broken)))) < 0.05
+
+
+def test_a_road_of_narrow_lanes_is_built_with_a_warning_not_refused() -> None:
+    """Three 2 m lanes (a catalogue of marks, a test track): no two lines lie a motorway lane apart, so
+    the lane model alone refuses; the drive's road is built once more with lanes from
+    `narrow_lane_width_m` and says so. Turned off (narrow width >= min width), it is refused as before."""
+    from lidar2xodr.lanes import NoLanesError, build_road_model
+
+    road = make_road([straight(300.0)], lane_widths=(2.0, 2.0, 2.0), gnss_noise=0.03, seed=2)
+    cands = find_candidates(road.cloud.xyz, MCFG)
+    with pytest.raises(NoLanesError):
+        build_lane_model(road.cloud, cands, LCFG)
+    model = build_road_model(road.cloud, cands, LCFG)
+    assert [len(sec.boundary_ids) - 1 for sec in model.sections] == [3]
+    assert "narrower than motorway lanes" in model.warnings[0]
+    widths = [np.nanmedian(a.t - b.t) for a, b in zip(model.boundaries, model.boundaries[1:], strict=False)]
+    assert np.allclose(widths, 2.0, atol=0.05)
+    off = LCFG.model_copy(update={"narrow_lane_width_m": LCFG.min_lane_width_m})
+    with pytest.raises(NoLanesError):
+        build_road_model(road.cloud, cands, off)

@@ -482,7 +482,7 @@ def lanes(
     from lidar2xodr.branches import build_network, save_network
     from lidar2xodr.config import Config
     from lidar2xodr.fileio import atomic_dir
-    from lidar2xodr.lanes import build_lane_model
+    from lidar2xodr.lanes import build_road_model
     from lidar2xodr.markings import find_candidates
     from lidar2xodr.markings_io import load_markings
 
@@ -493,7 +493,7 @@ def lanes(
         raise InputError(markings, "the marking cloud is empty")
     with _busy(f"lanes from {markings}"):
         candidates = find_candidates(cloud.xyz, cfg.markings)
-        model = build_lane_model(cloud, candidates, cfg.lanes, where=str(markings))
+        model = build_road_model(cloud, candidates, cfg.lanes, where=str(markings))
         network = build_network(cloud, model, cfg.lanes, cfg.markings, where=str(markings))
     pictures: list[Path] = []
     with staged_outputs():

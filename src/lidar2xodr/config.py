@@ -195,6 +195,11 @@ class LanesConfig(_Section):
     lookup_modulo_m: float = Field(3.0, gt=0, description="paper: distance % 3.0 m in the relative lookup")
     max_normal_length_m: float = Field(20.0, gt=0, description="ours: normals look this far left and right")
     min_lane_width_m: float = Field(2.5, gt=0, description="ours: narrower spacings are not lanes")
+    narrow_lane_width_m: float = Field(1.8, gt=0, description="ours: where no two lines lie min_lane_width_m-"
+                                              "max_lane_width_m apart anywhere, the drive's road is built once "
+                                              "more with lanes from this width on (with a warning): below every "
+                                              "lane cars use (2.0 m), above the 1.75 m from which a lane counts "
+                                              "as open; >= min_lane_width_m turns this off")
     max_lane_width_m: float = Field(5.0, gt=0, description="ours: wider spacings are not one lane")
     station_step_m: float = Field(1.0, gt=0, description="ours: spacing of the reference-line stations")
     min_section_length_m: float = Field(30.0, gt=0, description="ours: shorter lane-count changes are noise")

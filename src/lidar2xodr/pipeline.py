@@ -146,14 +146,14 @@ class BuildPipeline:
         of their own meanwhile (`scheduler.in_background`): the markings and lanes stages run on one
         core, and the tracks' smoothing splines take as long again on a busy road."""
         from lidar2xodr.branches import build_network
-        from lidar2xodr.lanes import build_lane_model
+        from lidar2xodr.lanes import build_road_model
         from lidar2xodr.markings import find_candidates
 
         with self._tracks_beside(cloud) as tracks:
             with self._stage("markings"):
                 candidates = find_candidates(cloud.xyz, self.config.markings)
             with self._stage("lanes"):
-                model = build_lane_model(cloud, candidates, self.config.lanes)
+                model = build_road_model(cloud, candidates, self.config.lanes)
                 model.warnings.extend(self._traffic_directions(model, cloud, tracks))
                 network = build_network(cloud, model, self.config.lanes, self.config.markings, where=str(self.drive))
         return model, network

@@ -76,7 +76,7 @@ Method and the decisions the paper leaves open (parameters in `LanesConfig`):
 
 from __future__ import annotations
 
-from lidar2xodr.lanes.build import build_lane_model
+from lidar2xodr.lanes.build import NoLanesError, build_lane_model, build_road_model
 from lidar2xodr.lanes.frame import Frame
 from lidar2xodr.lanes.lanes_json import FORMAT, load_lanes, model_dict, model_from, read_lanes_json, save_lanes
 from lidar2xodr.lanes.lookups import (
@@ -97,7 +97,9 @@ __all__ = [
     "LANE_TYPES",
     "Lookups",
     "Segments",
+    "NoLanesError",
     "build_lane_model",
+    "build_road_model",
     "candidate_segments",
     "global_lookup",
     "lane_step",

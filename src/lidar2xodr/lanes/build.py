@@ -48,7 +48,7 @@ def build_lane_model(
     lookups = relative_lookups(segs, cfg)
     w_lane = lane_step(lookups, cfg)
     if w_lane is None:
-        raise InputError(
+        raise NoLanesError(
             where,
             "found no two parallel marking lines "
             f"{cfg.min_lane_width_m:g}-{cfg.max_lane_width_m:g} m apart: a single line "
@@ -69,8 +69,35 @@ def build_lane_model(
             return _build_on_frame(cloud, candidates, cfg, where, xyz, pieces, owner, superline, frame, step, w_lane)
         except _NoRoad:
             if attempt == len(frames) - 1:
-                raise InputError(where, "no stretch of road has two marking lines a lane apart") from None
+                raise NoLanesError(where, "no stretch of road has two marking lines a lane apart") from None
     raise AssertionError("unreachable")
+
+
+class NoLanesError(InputError):
+    """No two marking lines lie a lane apart (`min_lane_width_m`-`max_lane_width_m`) anywhere."""
+
+
+def build_road_model(
+    cloud: MarkingCloud, candidates: list[Candidate], cfg: LanesConfig, where: str = "marking cloud"
+) -> LaneModel:
+    """`build_lane_model` of the drive's own road; where no two lines lie a lane apart, once more with
+    lanes from `narrow_lane_width_m` on, with a warning: a map of the lanes the markings show (a test
+    track, a catalogue of marks with 2 m lanes) rather than none. Branch roads do not take this
+    fallback: a ramp's one line and the clutter beside it would make a lane."""
+    try:
+        return build_lane_model(cloud, candidates, cfg, where)
+    except NoLanesError as exc:
+        if cfg.narrow_lane_width_m >= cfg.min_lane_width_m:
+            raise
+        narrow = cfg.model_copy(update={"min_lane_width_m": cfg.narrow_lane_width_m})
+        try:
+            model = build_lane_model(cloud, candidates, narrow, where)
+        except NoLanesError:
+            raise exc from None
+    model.warnings.insert(0, f"no two marking lines lie {cfg.min_lane_width_m:g}-{cfg.max_lane_width_m:g} m apart "
+                             f"(a lane); built with lanes from {cfg.narrow_lane_width_m:g} m, narrower than "
+                             "motorway lanes")
+    return model
 
 
 class _NoRoad(Exception):
