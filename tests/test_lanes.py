@@ -712,3 +712,21 @@ def test_a_road_of_narrow_lanes_is_built_with_a_warning_not_refused() -> None:
     off = LCFG.model_copy(update={"narrow_lane_width_m": LCFG.min_lane_width_m})
     with pytest.raises(NoLanesError):
         build_road_model(road.cloud, cands, off)
+
+
+def test_lanes_command_and_build_take_the_narrow_fallback(tmp_path: Path) -> None:
+    """`lidar2xodr lanes` and `build`'s lanes stage both build the drive's road through `build_road_model`."""
+    import subprocess
+    import sys
+
+    from lidar2xodr.markings_io import save_markings
+    from lidar2xodr.pipeline import BuildPipeline
+
+    road = make_road([straight(300.0)], lane_widths=(2.0, 2.0, 2.0), gnss_noise=0.03, seed=2)
+    save_markings(road.cloud, tmp_path / "m.ply")
+    proc = subprocess.run([sys.executable, "-m", "lidar2xodr.cli", "lanes", str(tmp_path / "m.ply"), "-o",
+                           str(tmp_path / "lanes.json")], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert [len(sec.boundary_ids) - 1 for sec in load_lanes(tmp_path / "lanes.json").sections] == [3]
+    model, _ = BuildPipeline(tmp_path / "no-drive", tmp_path / "map.xodr").lanes(road.cloud)
+    assert "narrower than motorway lanes" in model.warnings[0]
