@@ -87,7 +87,9 @@ drive's GNSS bias, as the paper's drive-to-drive protocol compares drives of unb
    `sample_step_m` by arc length, its heading taken from the path itself. A sample was driven on the
    road when the nearest reference carriageway centre of its travel direction (rule 1's heading rule,
    checked: no fallback to the other direction) lies within that carriageway's half-width and the
-   sample is beside it; the same test against the generated carriageways says it was built.
+   sample is beside it (any carriageway of that direction may hold it, each judged at its own
+   nearest centre vertex, not only the nearest one); the same test against the generated
+   carriageways says it was built.
    `share` = built / driven length. The lateral metrics above only look at what was built: a change
    that builds less road (or the easy half of it) can lower them, so they are read beside this one.
 """
