@@ -585,17 +585,24 @@ def _separator_solid_from(cloud: MarkingCloud, main: LaneModel, ev: Event, cfg: 
     return int(np.searchsorted(main.s, start))
 
 
-def _meeting_station(branch: LaneModel, main: LaneModel, ev: Event) -> int | None:
-    """The station from the junction on (up to 3 gore lengths, within the lane's section) where the
-    branch's reference line comes nearest the lost lane's middle, if within half a lane width."""
+def _after_junction(main: LaneModel, ev: Event) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The stations from the junction on, up to 3 gore lengths and within the lane's section, and the
+    offsets t of the event lane's left and right lines (at every station)."""
     sec = main.sections[ev.section]
     by_id = {b.id: b for b in main.boundaries}
     ks = _stations_of(main, sec)
     gore = int(round(_GORE_M / max(float(main.s[1] - main.s[0]), 1e-6)))
     ks = ks[(ks >= ev.k) & (ks <= ev.k + 3 * gore)]
+    return ks, by_id[sec.boundary_ids[ev.lane]].t, by_id[sec.boundary_ids[ev.lane + 1]].t
+
+
+def _meeting_station(branch: LaneModel, main: LaneModel, ev: Event) -> int | None:
+    """The station from the junction on (up to 3 gore lengths, within the lane's section) where the
+    branch's reference line comes nearest the lost lane's middle, if within half a lane width."""
+    ks, left_of, right_of = _after_junction(main, ev)
     if not len(ks):
         return None
-    left, right = by_id[sec.boundary_ids[ev.lane]].t[ks], by_id[sec.boundary_ids[ev.lane + 1]].t[ks]
+    left, right = left_of[ks], right_of[ks]
     ref, normal = _frame(main)
     middle = ref[ks] + normal[ks] * (0.5 * (left + right))[:, None]
     ok = np.isfinite(middle).all(axis=1)
@@ -617,17 +624,13 @@ def _ramp_nose(xy: np.ndarray, main: LaneModel, ev: Event) -> int | None:
 
     Where the lane's outer line was held back beyond its paint, the joining lane began at full width
     up to 25 m before the gore nose (esmini highway_merge), where the ramp still runs apart."""
-    sec = main.sections[ev.section]
-    by_id = {b.id: b for b in main.boundaries}
-    ks = _stations_of(main, sec)
-    gore = int(round(_GORE_M / max(float(main.s[1] - main.s[0]), 1e-6)))
-    ks = ks[(ks >= ev.k) & (ks <= ev.k + 3 * gore)]
+    ks, left_of, right_of = _after_junction(main, ev)
     if not len(ks):
         return None
     k, t = _project(main, xy)
     on = np.isin(k, ks)
     k, t = k[on], t[on]
-    left, right = by_id[sec.boundary_ids[ev.lane]].t[k], by_id[sec.boundary_ids[ev.lane + 1]].t[k]
+    left, right = left_of[k], right_of[k]
     with np.errstate(invalid="ignore"):
         inside = (t < left - _NOSE_MARGIN_M) & (t > right + _NOSE_MARGIN_M)
     if inside.sum() < _NOSE_MIN_POINTS:
