@@ -97,6 +97,7 @@ drive's GNSS bias, as the paper's drive-to-drive protocol compares drives of unb
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -354,6 +355,33 @@ def _segment_distance(lines: Lines, q: np.ndarray, cand: np.ndarray) -> tuple[np
     return best, beyond
 
 
+def _candidates_by_heading(lines: Lines, q: np.ndarray, q_hdg: np.ndarray, tol_rad: float, k_max: int,
+                           any_heading: bool) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """(query indices, their `k_max` nearest vertices of agreeing heading) per HEADING_BIN_DEG bin of the
+    queries' headings; a line agrees when its heading is within `tol_rad` of the bin centre (one
+    cKDTree per distinct set of agreeing vertices). Where no line agrees, every vertex is a candidate
+    with `any_heading`, else the bin is skipped."""
+    bin_rad = math.radians(HEADING_BIN_DEG)
+    n_bins = round(2.0 * math.pi / bin_rad)
+    q_bin = np.floor(np.mod(q_hdg, 2.0 * math.pi) / bin_rad).astype(int) % n_bins
+    trees: dict[bytes, tuple[np.ndarray, cKDTree]] = {}
+    for b in np.unique(q_bin):
+        agree = np.abs(wrap_angle(lines.hdg - (b + 0.5) * bin_rad)) <= tol_rad
+        if not agree.any():
+            if not any_heading:
+                continue
+            agree = np.ones(len(lines.hdg), bool)
+        key = np.packbits(agree).tobytes()
+        if key not in trees:
+            sub = np.flatnonzero(agree)
+            trees[key] = (sub, cKDTree(lines.xy[sub]))
+        sub, tree = trees[key]
+        sel = np.flatnonzero(q_bin == b)
+        k = min(k_max, len(sub))
+        _, cand = tree.query(q[sel], k=k)
+        yield sel, sub[np.asarray(cand).reshape(len(sel), k)]
+
+
 def nearest(lines: Lines, q: np.ndarray, q_hdg: np.ndarray, tol_rad: float
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Distance from each query point to the nearest polyline of agreeing travel heading, its vertex,
@@ -364,26 +392,10 @@ def nearest(lines: Lines, q: np.ndarray, q_hdg: np.ndarray, tol_rad: float
     distinct set of agreeing vertices); the distance is the exact one to the segments adjacent to
     them. Where no line of `lines` agrees, the heading is ignored.
     """
-    bin_rad = math.radians(HEADING_BIN_DEG)
-    n_bins = round(2.0 * math.pi / bin_rad)
-    q_bin = np.floor(np.mod(q_hdg, 2.0 * math.pi) / bin_rad).astype(int) % n_bins
     dist = np.full(len(q), np.inf)
     vertex = np.full(len(q), -1)
     beyond = np.zeros(len(q), bool)
-    trees: dict[bytes, tuple[np.ndarray, cKDTree]] = {}
-    for b in np.unique(q_bin):
-        agree = np.abs(wrap_angle(lines.hdg - (b + 0.5) * bin_rad)) <= tol_rad
-        if not agree.any():
-            agree = np.ones(len(lines.hdg), bool)
-        key = np.packbits(agree).tobytes()
-        if key not in trees:
-            sub = np.flatnonzero(agree)
-            trees[key] = (sub, cKDTree(lines.xy[sub]))
-        sub, tree = trees[key]
-        sel = np.flatnonzero(q_bin == b)
-        k = min(_K_NEAREST, len(sub))
-        _, cand = tree.query(q[sel], k=k)
-        cand = sub[np.asarray(cand).reshape(len(sel), k)]
+    for sel, cand in _candidates_by_heading(lines, q, q_hdg, tol_rad, _K_NEAREST, any_heading=True):
         d, past = _segment_distance(lines, q[sel], cand)
         j = np.argmin(d, axis=1)
         rows = np.arange(len(sel))
@@ -610,20 +622,11 @@ def _on_carriageway(cw: Carriageways, q: np.ndarray, hdg: np.ndarray, tol: float
         return held
     lines = cw.centre
     line_of = np.cumsum(lines.prv < 0) - 1
-    bin_rad = math.radians(HEADING_BIN_DEG)
-    q_bin = np.floor(np.mod(hdg, 2.0 * math.pi) / bin_rad).astype(int) % round(2.0 * math.pi / bin_rad)
-    for b in np.unique(q_bin):
-        sub = np.flatnonzero(np.abs(wrap_angle(lines.hdg - (b + 0.5) * bin_rad)) <= tol)
-        if not len(sub):
-            continue
-        sel = np.flatnonzero(q_bin == b)
-        k = min(_K_ON, len(sub))
-        _, cand = cKDTree(lines.xy[sub]).query(q[sel], k=k)
-        cand = sub[np.asarray(cand).reshape(len(sel), k)]
+    for sel, cand in _candidates_by_heading(lines, q, hdg, tol, _K_ON, any_heading=False):
         d, past = _segment_distance(lines, q[sel], cand)
         line = line_of[cand]
         same_line = line[:, :, None] == line[:, None, :]
-        order = np.arange(k)
+        order = np.arange(cand.shape[1])
         # a vertex is its line's own when no other of that line is nearer, ties to the nearer vertex (the
         # query's order): the last vertex of a line the sample is past, not the one before, at the same d
         ahead = (d[:, None, :] < d[:, :, None]) | ((d[:, None, :] == d[:, :, None]) & (order[None, :] < order[:, None]))
