@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.interpolate import BSpline
 
-from lidar2xodr.export_opendrive import _slope_rows, _spline_records
+from lidar2xodr.export_opendrive import _merge_records, _Records, _slope_rows, _spline_records
 
 
 def _dense_coefficients(x, y, breaks, smooth, constraints, c1):
@@ -64,3 +64,46 @@ def test_contradictory_constraints_give_the_nearest_spline_not_an_error() -> Non
     values = rec(np.linspace(0.0, 100.0, 11))
     assert np.all(np.isfinite(values))
     assert rec(np.array([50.0]))[0] == pytest.approx(2.0, abs=0.05)
+
+
+def _merge_records_loop(rec, end, tol=1e-6):
+    """The per-record formula `_merge_records` replaced (each record evaluated through `_Records`)."""
+    ends = np.r_[rec.starts[1:], end]
+    coeffs = rec.coeffs.copy()
+    for i in range(len(rec.starts)):
+        ds = np.linspace(0.0, ends[i] - rec.starts[i], 9)
+        vals = _Records(np.zeros(1), coeffs[i:i + 1])(ds)
+        if np.ptp(vals) < tol:
+            coeffs[i] = [0.5 * (vals.max() + vals.min()), 0.0, 0.0, 0.0]
+    keep = [0]
+    for i in range(1, len(rec.starts)):
+        j = keep[-1]
+        s = np.linspace(rec.starts[i], ends[i], 9)
+        prev = _Records(rec.starts[j:j + 1], coeffs[j:j + 1])(s)
+        if np.max(np.abs(prev - _Records(rec.starts[i:i + 1], coeffs[i:i + 1])(s))) >= tol:
+            keep.append(i)
+    return _Records(rec.starts[keep], coeffs[keep])
+
+
+def test_merged_records_are_bitwise_those_of_the_per_record_formula() -> None:
+    """Flat records (1e-8 m of noise on a constant width), records continuing their predecessor's
+    cubic, a zero-length record and ordinary ones: the same starts and the same coefficient bits."""
+    rng = np.random.default_rng(5)
+    starts = np.r_[0.0, np.cumsum(rng.uniform(5.0, 40.0, 59))]
+    starts[20] = starts[19]
+    coeffs = rng.normal(0.0, [1.0, 0.05, 1e-3, 1e-5], (60, 4))
+    coeffs[5:15] = [3.5, 0.0, 0.0, 0.0]
+    coeffs[5:15, 1] += rng.normal(0.0, 1e-9, 10)
+    for i in range(30, 40):  # one cubic across ten records
+        h = starts[i] - starts[29]
+        a, b, c, d = coeffs[29]
+        coeffs[i] = [a + h * (b + h * (c + h * d)), b + h * (2 * c + 3 * h * d), c + 3 * h * d, d]
+    for i in range(45, 51):  # each continues the one before it, 0.6 um higher: every second one is kept
+        h = starts[i] - starts[i - 1]
+        a, b, c, d = coeffs[i - 1]
+        coeffs[i] = [a + h * (b + h * (c + h * d)) + 6e-7, b + h * (2 * c + 3 * h * d), c + 3 * h * d, d]
+    rec = _Records(starts, coeffs)
+    end = float(starts[-1] + 12.0)
+    got, want = _merge_records(rec, end), _merge_records_loop(rec, end)
+    assert len(got.starts) < len(starts)
+    assert np.array_equal(got.starts, want.starts) and np.array_equal(got.coeffs, want.coeffs)

@@ -465,6 +465,11 @@ def _non_negative(rec: _Records, end: float) -> _Records:
     return _Records(rec.starts.copy(), coeffs)
 
 
+def _horner(c: np.ndarray, ds: np.ndarray) -> np.ndarray:
+    """a + b ds + c ds^2 + d ds^3 as `_Records` evaluates it (the same operations, so the same bits)."""
+    return c[0] + ds * (c[1] + ds * (c[2] + ds * c[3]))
+
+
 def _merge_records(rec: _Records, end: float, tol: float = 1e-6) -> _Records:
     """Flatten records that vary less than `tol` and drop records that continue the previous polynomial.
 
@@ -474,17 +479,19 @@ def _merge_records(rec: _Records, end: float, tol: float = 1e-6) -> _Records:
     """
     ends = np.r_[rec.starts[1:], end]
     coeffs = rec.coeffs.copy()
-    for i in range(len(rec.starts)):
-        ds = np.linspace(0.0, ends[i] - rec.starts[i], 9)
-        vals = _Records(np.zeros(1), coeffs[i:i + 1])(ds)
-        if np.ptp(vals) < tol:
-            coeffs[i] = [0.5 * (vals.max() + vals.min()), 0.0, 0.0, 0.0]
+    if len(coeffs) == 0:
+        return _Records(rec.starts.copy(), coeffs)
+    length = ends - rec.starts
+    ds = np.arange(9.0)[None, :] * (length / 8.0)[:, None]  # np.linspace(0, length, 9) of every record, exactly
+    vals = _horner(coeffs.T[:, :, None], ds)
+    flat = np.ptp(vals, axis=1) < tol
+    coeffs[flat] = np.column_stack([0.5 * (vals[flat].max(axis=1) + vals[flat].min(axis=1)),
+                                    np.zeros((int(flat.sum()), 3))])
     keep = [0]
     for i in range(1, len(rec.starts)):
         j = keep[-1]
         s = np.linspace(rec.starts[i], ends[i], 9)
-        prev = _Records(rec.starts[j:j + 1], coeffs[j:j + 1])(s)
-        if np.max(np.abs(prev - _Records(rec.starts[i:i + 1], coeffs[i:i + 1])(s))) >= tol:
+        if np.max(np.abs(_horner(coeffs[j], s - rec.starts[j]) - _horner(coeffs[i], s - rec.starts[i]))) >= tol:
             keep.append(i)
     return _Records(rec.starts[keep], coeffs[keep])
 
