@@ -131,6 +131,20 @@ def test_a_lane_into_a_branch_that_was_not_built_is_open_at_the_junction() -> No
     assert any("measured width" in w for w in net.warnings)
 
 
+def test_a_junction_whose_roads_share_no_lane_leaves_the_road_whole(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The continuation of a junction links the lanes that go on; where none do (the road after it
+    measured again elsewhere, seen on Town04 with a changed frame), the exporter would refuse the
+    whole map ("links no lanes"). The drive's road is kept whole, with a warning, instead."""
+    import lidar2xodr.branches as branches
+
+    cfg = Config()
+    road = _road(widen_from=150.0)
+    monkeypatch.setattr(branches, "_lane_links", lambda a, b: [])
+    net = build_network(_cloud(np.zeros((0, 2))), road, cfg.lanes, cfg.markings)
+    assert net.roads == [road] and net.links == []
+    assert any("share no lane" in w for w in net.warnings)
+
+
 def test_a_lane_from_a_ramp_that_was_not_built_is_open_at_the_junction() -> None:
     """An on-ramp with one painted line cannot be built as a road of its own; the lane it brings
     still starts at the junction at full width: the continuation link names it in `open_out`."""

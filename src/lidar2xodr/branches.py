@@ -514,7 +514,13 @@ def build_network(cloud: MarkingCloud, main: LaneModel, lanes_cfg: LanesConfig, 
             warnings.append(f"the carriageway beyond s {main.s[ev.k]:.0f} m could not be measured again "
                             f"({why_again}); it keeps the first measurement")
     roads = [road_a, road_b]
-    links = [RoadLink(0, 1, _lane_links(road_a, road_b), continuation=True)]
+    through = _lane_links(road_a, road_b)
+    if not through:
+        # the road before and the road after share no lane (both measured again, or a lane count that
+        # jumps): a junction of nothing is no map, the road is written whole
+        return RoadNetwork([main], [], warnings + [f"{label} is not modelled as a junction: the road before "
+                                                   "and after it share no lane"])
+    links = [RoadLink(0, 1, through, continuation=True)]
     if branch is None:
         # the lane goes on into (comes from) the road that was not built: it ends (starts) at the
         # junction at its measured width, not in a taper
