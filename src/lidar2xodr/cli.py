@@ -493,7 +493,7 @@ def lanes(
         raise InputError(markings, "the marking cloud is empty")
     with _busy(f"lanes from {markings}"):
         candidates = find_candidates(cloud.xyz, cfg.markings)
-        model = build_road_model(cloud, candidates, cfg.lanes, where=str(markings))
+        model = build_road_model(cloud, candidates, cfg.lanes, where=str(markings), markings_cfg=cfg.markings)
         network = build_network(cloud, model, cfg.lanes, cfg.markings, where=str(markings))
     pictures: list[Path] = []
     with staged_outputs():

@@ -153,7 +153,7 @@ class BuildPipeline:
             with self._stage("markings"):
                 candidates = find_candidates(cloud.xyz, self.config.markings)
             with self._stage("lanes"):
-                model = build_road_model(cloud, candidates, self.config.lanes)
+                model = build_road_model(cloud, candidates, self.config.lanes, markings_cfg=self.config.markings)
                 model.warnings.extend(self._traffic_directions(model, cloud, tracks))
                 network = build_network(cloud, model, self.config.lanes, self.config.markings, where=str(self.drive))
         return model, network

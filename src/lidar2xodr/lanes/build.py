@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lidar2xodr.config import LanesConfig
+from lidar2xodr.config import LanesConfig, MarkingsConfig
 from lidar2xodr.data import Boundary, Candidate, LaneModel, MarkingCloud
 from lidar2xodr.errors import InputError
 from lidar2xodr.lanes.dividers import _divided_left, _ego_offsets, _ego_track, _mark_dividers
@@ -78,12 +78,27 @@ class NoLanesError(InputError):
 
 
 def build_road_model(
-    cloud: MarkingCloud, candidates: list[Candidate], cfg: LanesConfig, where: str = "marking cloud"
+    cloud: MarkingCloud, candidates: list[Candidate], cfg: LanesConfig, where: str = "marking cloud",
+    markings_cfg: MarkingsConfig | None = None,
 ) -> LaneModel:
     """`build_lane_model` of the drive's own road; where no two lines lie a lane apart, once more with
     lanes from `narrow_lane_width_m` on, with a warning: a map of the lanes the markings show (a test
     track, a catalogue of marks with 2 m lanes) rather than none. Branch roads do not take this
-    fallback: a ramp's one line and the clutter beside it would make a lane."""
+    fallback: a ramp's one line and the clutter beside it would make a lane. With `markings_cfg`
+    (the drive's build), a road under almost none of the drive is built again along it
+    (`along_drive.build_along_drive`, candidates found in each stretch's markings)."""
+    model = _road_model(cloud, candidates, cfg, where)
+    if markings_cfg is None:
+        return model
+    from lidar2xodr.lanes.along_drive import build_along_drive
+    from lidar2xodr.markings import find_candidates
+
+    return build_along_drive(cloud, model, lambda sub, _: _road_model(sub, find_candidates(sub.xyz, markings_cfg),
+                                                                       cfg, where))
+
+
+def _road_model(cloud: MarkingCloud, candidates: list[Candidate], cfg: LanesConfig, where: str) -> LaneModel:
+    """`build_lane_model`, with the narrow-lane fallback of `build_road_model`."""
     try:
         return build_lane_model(cloud, candidates, cfg, where)
     except NoLanesError as exc:
