@@ -463,16 +463,19 @@ def _as_in_a_terminal() -> None:
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
-def _build_until_checker(assets: dict[str, Path], out: Path) -> tuple[subprocess.Popen[str], set[int]]:
+def _build_until_checker(assets: dict[str, Path], out: Path,
+                         tmpdir: Path | None = None) -> tuple[subprocess.Popen[str], set[int]]:
     """Start `build` in a subprocess and wait until the map checker (a child process) runs.
 
-    The checker is a stand-in that sleeps (601 s), so the build is still in it when the signal comes."""
+    The checker is a stand-in that sleeps (601 s), so the build is still in it when the signal comes.
+    `tmpdir` is the build's system temporary folder (TMPDIR)."""
     venv = out.parent / "slow-qc"
     (venv / "bin").mkdir(parents=True, exist_ok=True)
     (venv / "bin" / "python").write_text("#!/bin/sh\nexec sleep 601\n")
     (venv / "bin" / "python").chmod(0o755)
+    env = {**_env(), "LIDAR2XODR_QC_VENV": str(venv), **({"TMPDIR": str(tmpdir)} if tmpdir else {})}
     proc = subprocess.Popen([sys.executable, "-m", "lidar2xodr.cli", "build", str(assets["drive"]), "-o",
-                             str(out / "map.xodr")], env={**_env(), "LIDAR2XODR_QC_VENV": str(venv)},
+                             str(out / "map.xodr")], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_as_in_a_terminal)
     found = _wait(lambda: any(_is_sleeper(k) for k in _descendants(proc.pid)), 60)
     if not found:
@@ -658,14 +661,20 @@ def test_a_child_started_after_the_interrupt_is_killed_at_once() -> None:
     assert not lifetime._STOPPING[0]
 
 
-def test_sigkill_takes_the_checker_along_and_the_next_run_cleans_up(tmp_path: Path,
-                                                                     assets: dict[str, Path]) -> None:
+def test_sigkill_takes_the_checker_along_and_the_next_run_cleans_up(tmp_path: Path, assets: dict[str, Path],
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """The killed build's and the next run's system temporary folder is the test's own: any other
+    lidar2xodr run on the machine (a sweep beside the tests) cleans the shared one's leftovers of dead
+    runs too, and took this one's before the test looked (a CI run beside a sweep failed so)."""
     import tempfile
 
+    private = tmp_path / "tmp"
+    private.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(private))
     out = tmp_path / "out"
     out.mkdir()
     (out / "map.xodr").write_text("the map of an earlier build")
-    proc, children = _build_until_checker(assets, out)
+    proc, children = _build_until_checker(assets, out, tmpdir=private)
     pid = proc.pid
     proc.kill()
     proc.communicate(timeout=30)
