@@ -51,7 +51,7 @@ def test_a_road_under_none_of_the_drive_is_built_again_along_it() -> None:
     cloud = _cloud()
     seen: list[tuple[float, float]] = []
 
-    def build(sub: MarkingCloud, _: object) -> LaneModel:
+    def build(sub: MarkingCloud) -> LaneModel:
         assert np.all(np.abs(sub.xyz[:, 1]) <= 30.0)
         x = sub.trajectory.positions[:, 0]
         seen.append((float(x.min()), float(x.max())))
@@ -68,7 +68,7 @@ def test_a_road_under_none_of_the_drive_is_built_again_along_it() -> None:
 def test_a_road_under_the_drive_is_kept_as_built() -> None:
     cloud = _cloud()
 
-    def build(sub: MarkingCloud, _: object) -> LaneModel:
+    def build(sub: MarkingCloud) -> LaneModel:
         raise AssertionError("a road under the drive is not built again")
 
     road = _road(0.0, 1000.0, 0.0)

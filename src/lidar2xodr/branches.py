@@ -274,7 +274,7 @@ def _branch_cloud(cloud: MarkingCloud, main: LaneModel, ev: Event, kept_lines: l
         gore_pts = (k >= ev.k) & (k <= ev.k + gore) & on_lane
     take = (ahead & beside & far) | gore_pts
     take &= np.linalg.norm(xy - fork, axis=1) <= cfg.branch_window_m
-    return _chained(_subset(cloud, np.flatnonzero(take)), cfg, markings_cfg)
+    return _chained(cloud.subset(np.flatnonzero(take)), cfg, markings_cfg)
 
 
 def _chained(cloud: MarkingCloud, cfg: LanesConfig, markings_cfg: MarkingsConfig) -> MarkingCloud:
@@ -286,7 +286,7 @@ def _chained(cloud: MarkingCloud, cfg: LanesConfig, markings_cfg: MarkingsConfig
         return cloud
     cands = find_candidates(cloud.xyz, markings_cfg)
     if not cands:
-        return _subset(cloud, np.zeros(0, dtype=np.int64))
+        return cloud.subset(np.zeros(0, dtype=np.int64))
     xy = np.asarray(cloud.xyz)[:, :2]
     label = _label_by_candidates(xy, cands, np.arange(len(cands)), cfg)
     keep = np.zeros(len(xy), dtype=bool)
@@ -298,7 +298,7 @@ def _chained(cloud: MarkingCloud, cfg: LanesConfig, markings_cfg: MarkingsConfig
         along = xy[mine] @ (d / max(float(np.linalg.norm(d)), 1e-9))
         if float(along.max() - along.min()) >= cfg.branch_min_line_m:
             keep |= mine
-    return _subset(cloud, np.flatnonzero(keep))
+    return cloud.subset(np.flatnonzero(keep))
 
 
 def _orient_and_cut(branch: LaneModel, main: LaneModel, ev: Event, cfg: LanesConfig) -> tuple[LaneModel | None, str]:
@@ -372,12 +372,6 @@ def _normal_lines(model: LaneModel, cfg: LanesConfig) -> list[np.ndarray]:
             for bid in sec.boundary_ids[lane : lane + 2]:
                 ok[bid][bad] = False
     return _lines(model, ok)
-
-
-def _subset(cloud: MarkingCloud, sel: np.ndarray) -> MarkingCloud:
-    return MarkingCloud(xyz=np.asarray(cloud.xyz)[sel], intensity=np.asarray(cloud.intensity)[sel],
-                        scan_index=np.asarray(cloud.scan_index)[sel], time=np.asarray(cloud.time)[sel],
-                        planes=cloud.planes, trajectory=cloud.trajectory, origin=cloud.origin)
 
 
 def _far_from(xy: np.ndarray, lines: list[np.ndarray], dist: float) -> np.ndarray:
@@ -500,7 +494,7 @@ def build_network(cloud: MarkingCloud, main: LaneModel, lanes_cfg: LanesConfig, 
         far = _far_from(xy, _lines(branch),
                         lanes_cfg.assign_distance_m)
         try:
-            again, why_again = _orient_and_cut(lanes_of(_subset(cloud, np.flatnonzero(side & far)), "continuing road"),
+            again, why_again = _orient_and_cut(lanes_of(cloud.subset(np.flatnonzero(side & far)), "continuing road"),
                                                main, replace(ev, lane=_middle_lane(main, ev)), lanes_cfg)
         except InputError as exc:
             again, why_again = None, exc.problem

@@ -87,6 +87,14 @@ class MarkingCloud:
     trajectory: Trajectory
     origin: GeoOrigin = field(default_factory=GeoOrigin)
 
+    def subset(self, idx: np.ndarray, trajectory: Trajectory | None = None) -> MarkingCloud:
+        """The points `idx` (indices or a mask) with the same planes and origin; the trajectory too,
+        unless another is given."""
+        return MarkingCloud(xyz=np.asarray(self.xyz)[idx], intensity=np.asarray(self.intensity)[idx],
+                            scan_index=np.asarray(self.scan_index)[idx], time=np.asarray(self.time)[idx],
+                            planes=self.planes, trajectory=self.trajectory if trajectory is None else trajectory,
+                            origin=self.origin)
+
 
 @dataclass
 class Candidate:

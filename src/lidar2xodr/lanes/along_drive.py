@@ -7,8 +7,9 @@ the road built on it may lie under none of the drive (Town04's default route: 48
 it driven). Where the road built holds less than `_MIN_HELD_SHARE` of the drive, the road is built
 again from the markings along stretches of the drive (`_WINDOW_M` of the trajectory at a time, every
 half window; the markings within `_REACH_M` of it), and the road holding most of the drive is kept,
-with a warning naming the stretch. The trajectory only chooses which markings are looked at; lanes
-still come from the markings alone. Drives whose road holds most of the drive are not changed.
+with a warning naming the stretch. A drive shorter than one stretch is left as built. The trajectory
+only chooses which markings are looked at; lanes still come from the markings alone. Drives whose
+road holds most of the drive are not changed.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from collections.abc import Callable
 import numpy as np
 from scipy.spatial import cKDTree
 
-from lidar2xodr.data import Candidate, LaneModel, MarkingCloud, Trajectory
+from lidar2xodr.data import LaneModel, MarkingCloud, Trajectory
 from lidar2xodr.errors import InputError
 from lidar2xodr.lanes.frame import Frame
 
@@ -54,10 +55,10 @@ def held_length(model: LaneModel, path: np.ndarray) -> float:
 
 
 def build_along_drive(cloud: MarkingCloud, model: LaneModel,
-                      build: Callable[[MarkingCloud, list[Candidate] | None], LaneModel]) -> LaneModel:
+                      build: Callable[[MarkingCloud], LaneModel]) -> LaneModel:
     """`model`, or the road built along a stretch of the drive when that holds more of it (see the module).
 
-    `build(sub_cloud, None)` builds a road from a part of the cloud (candidates found there)."""
+    `build(sub_cloud)` builds a road from a part of the cloud (candidates found there)."""
     traj = cloud.trajectory
     if len(traj) < 2:
         return model
@@ -73,12 +74,12 @@ def build_along_drive(cloud: MarkingCloud, model: LaneModel,
         poses = (arc >= a) & (arc <= a + _WINDOW_M)
         if poses.sum() < 2:
             continue
-        near = np.unique(np.concatenate(tree.query_ball_point(_dense(xy[poses]), _REACH_M))).astype(np.int64)
+        near = np.unique(np.concatenate(tree.query_ball_point(_path_samples(xy[poses])[0], _REACH_M)))
         if len(near) < 50:
             continue
-        sub = _subset(cloud, near, Trajectory(traj.times[poses], traj.poses[poses]))
+        sub = cloud.subset(near.astype(np.int64), Trajectory(traj.times[poses], traj.poses[poses]))
         try:
-            road = build(sub, None)
+            road = build(sub)
         except InputError:
             continue
         got = held_length(road, path)
@@ -91,14 +92,3 @@ def build_along_drive(cloud: MarkingCloud, model: LaneModel,
                             f"drive's stretch {best_at[0]:.0f}-{best_at[1]:.0f} m instead: {best_held:.0f} m of the "
                             "drive lie on it, the rest of the drive is not mapped")
     return best
-
-
-def _dense(xy: np.ndarray) -> np.ndarray:
-    """The poses' path sampled every `_SAMPLE_M` (poses far apart would leave holes in the reach)."""
-    return _path_samples(xy)[0]
-
-
-def _subset(cloud: MarkingCloud, idx: np.ndarray, trajectory: Trajectory) -> MarkingCloud:
-    return MarkingCloud(xyz=np.asarray(cloud.xyz)[idx], intensity=np.asarray(cloud.intensity)[idx],
-                        scan_index=np.asarray(cloud.scan_index)[idx], time=np.asarray(cloud.time)[idx],
-                        planes=cloud.planes, trajectory=trajectory, origin=cloud.origin)

@@ -93,8 +93,8 @@ def build_road_model(
     from lidar2xodr.lanes.along_drive import build_along_drive
     from lidar2xodr.markings import find_candidates
 
-    return build_along_drive(cloud, model, lambda sub, _: _road_model(sub, find_candidates(sub.xyz, markings_cfg),
-                                                                       cfg, where))
+    return build_along_drive(cloud, model, lambda sub: _road_model(sub, find_candidates(sub.xyz, markings_cfg), cfg,
+                                                                    where))
 
 
 def _road_model(cloud: MarkingCloud, candidates: list[Candidate], cfg: LanesConfig, where: str) -> LaneModel:
