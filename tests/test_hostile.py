@@ -692,10 +692,10 @@ def test_sigkill_takes_the_checker_along_and_the_next_run_cleans_up(tmp_path: Pa
 
 @pytest.mark.parametrize("kind", ["pool worker", "subprocess"])
 def test_children_die_with_a_killed_parent(kind: str, tmp_path: Path) -> None:
-    """The extraction's pool (`scheduler.task_runner`) and our subprocesses' preexec_fn tie them to the parent."""
+    """The extraction's pool (`scheduler.task_runner`) and our subprocesses' launcher tie them to the parent."""
     script = textwrap.dedent(f"""
         import os, subprocess, sys, time
-        from lidar2xodr.lifetime import child_preexec
+        from lidar2xodr.lifetime import dying_with_us
         from lidar2xodr.scheduler import task_runner
         def pid(job):
             return os.getpid()
@@ -704,7 +704,7 @@ def test_children_die_with_a_killed_parent(kind: str, tmp_path: Path) -> None:
                 print(submit(pid).result(), flush=True)
                 time.sleep(60)
         else:
-            child = subprocess.Popen(["sleep", "60"], preexec_fn=child_preexec())
+            child = subprocess.Popen(dying_with_us(["sleep", "60"]))
             print(child.pid, flush=True)
         time.sleep(60)
     """)
@@ -722,6 +722,42 @@ def test_children_die_with_a_killed_parent(kind: str, tmp_path: Path) -> None:
         if child is not None:
             with contextlib.suppress(OSError):
                 os.kill(child, signal.SIGKILL)
+
+
+_SPAWN_BESIDE_BLAS = """
+import threading, time
+import numpy as np
+from lidar2xodr.lifetime import run_child
+
+done = []
+def spawn():
+    while not done:
+        run_child(["true"], timeout=60)
+threads = [threading.Thread(target=spawn) for _ in range(4)]
+for t in threads:
+    t.start()
+a = np.random.default_rng(0).random((200, 200))
+end = time.monotonic() + 3
+while time.monotonic() < end:
+    np.linalg.svd(a)
+done.append(1)
+for t in threads:
+    t.join()
+print("finished")
+"""
+
+
+def test_children_started_from_threads_do_not_hang_a_blas_call() -> None:
+    """`check` starts its readers from threads while the main thread measures the map with numpy.
+
+    With a fork (a `preexec_fn`), OpenBLAS's at-fork handler stopped its thread pool under the main
+    thread's BLAS call, which never returned: a CI build hung there and ignored SIGTERM."""
+    try:
+        proc = subprocess.run([sys.executable, "-c", _SPAWN_BESIDE_BLAS], env=_env(), capture_output=True, text=True,
+                              timeout=60)
+    except subprocess.TimeoutExpired:
+        pytest.fail("a BLAS call hung while threads started children")
+    assert proc.stdout.strip() == "finished", proc.stderr
 
 
 def test_stale_temp_of_a_live_process_is_kept(tmp_path: Path, assets: dict[str, Path]) -> None:

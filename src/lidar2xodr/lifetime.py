@@ -5,7 +5,7 @@
 every child started with `run_child` is killed (`children_killed_on_exit`), also where a thread of
 ours is the one waiting for it. A SIGKILL runs no clean-up at all, so the
 extraction's worker processes and the checker/reader subprocesses ask the kernel to kill them
-when their parent dies (Linux `prctl(PR_SET_PDEATHSIG)`), and the next run removes the dead
+when their parent dies (Linux `prctl(PR_SET_PDEATHSIG)`, see `dying_with_us`), and the next run removes the dead
 run's temporary folders (`fileio.clean_stale`).
 """
 
@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import functools
 import io
 import os
 import signal
@@ -126,7 +125,7 @@ def terminate_as_interrupt() -> Iterator[None]:
 def die_with_parent(parent_pid: int | None = None) -> None:
     """Ask the kernel to SIGKILL this process when its parent dies (Linux; elsewhere a no-op).
 
-    Called first thing in a worker or (as `preexec_fn`) in a child; `parent_pid` guards the race
+    Called first thing in a pool worker; `parent_pid` guards the race
     where the parent died before the request was made.
     """
     if _PRCTL is None:
@@ -136,9 +135,28 @@ def die_with_parent(parent_pid: int | None = None) -> None:
         os._exit(1)
 
 
-def child_preexec() -> functools.partial[None]:
-    """A `preexec_fn` for our subprocesses: the child dies with this process."""
-    return functools.partial(die_with_parent, os.getpid())
+_EXEC_FAILED = "lidar2xodr: exec failed, errno "
+_LAUNCHER = (
+    "import ctypes, os, sys\n"
+    f"ctypes.CDLL(None).prctl({_PR_SET_PDEATHSIG}, {int(signal.SIGKILL)}, 0, 0, 0)\n"
+    "if os.getppid() != int(sys.argv[1]):\n    os._exit(1)\n"
+    "try:\n    os.execvp(sys.argv[2], sys.argv[2:])\n"
+    f"except OSError as exc:\n    os.write(2, b'{_EXEC_FAILED}%d\\n' % exc.errno)\n    os._exit(127)\n"
+)
+
+
+def dying_with_us(cmd: Sequence[str]) -> list[str]:
+    """`cmd` started through a launcher that asks the kernel to kill it when this process dies.
+
+    The request cannot be a `preexec_fn`: Python then forks instead of vforking, which runs the
+    at-fork handlers of every library in this process, and OpenBLAS's stops its thread pool
+    under a BLAS call of the main thread, which never returns (a `check` spawns its readers from
+    threads while the main thread measures the map: a CI build hung in it and ignored SIGTERM).
+    The launcher (a bare Python) makes the request, then replaces itself with `cmd` (same pid).
+    """
+    if _PRCTL is None:
+        return list(cmd)
+    return [sys.executable, "-I", "-S", "-c", _LAUNCHER, str(os.getpid()), *cmd]
 
 
 _CHILDREN: set[subprocess.Popen[str]] = set()
@@ -154,8 +172,8 @@ def run_child(cmd: Sequence[str], *, timeout: float, env: dict[str, str] | None 
     while a worker thread waits for it (an interrupted `check` must not wait up to `timeout`
     for a checker that nobody reads any more).
     """
-    with subprocess.Popen(list(cmd), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=cwd,
-                          preexec_fn=child_preexec()) as proc:
+    with subprocess.Popen(dying_with_us(cmd), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                          cwd=cwd) as proc:
         with _CHILDREN_LOCK:
             _CHILDREN.add(proc)
             if _STOPPING[0] or _SIGNALLED[0] is not None:
@@ -170,7 +188,10 @@ def run_child(cmd: Sequence[str], *, timeout: float, env: dict[str, str] | None 
             with _CHILDREN_LOCK:
                 _CHILDREN.discard(proc)
     raise_if_signalled()
-    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+    if proc.returncode == 127 and err.startswith(_EXEC_FAILED):
+        code = int(err[len(_EXEC_FAILED):].split()[0])
+        raise OSError(code, os.strerror(code), cmd[0])
+    return subprocess.CompletedProcess(list(cmd), proc.returncode, out, err)
 
 
 def kill_children() -> None:
