@@ -49,15 +49,16 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components, dijkstra
 from scipy.spatial import cKDTree
-from sklearn.cluster import DBSCAN
 
 from lidar2xodr.config import MarkingsConfig
 from lidar2xodr.data import Candidate
+from lidar2xodr.dbscan import dbscan
 from lidar2xodr.errors import InputError
 
 _RANSAC_SAMPLES = 48
 _MAX_CURV = 1.0 / 500.0  # curvature allowed in the Combine extrapolation (63 m on R 500 m: 4 m)
 _CHUNK = 1024
+_BLOCK_POINTS = 1 << 18  # marking points per block of `_line_fit`
 
 
 @dataclass
@@ -107,15 +108,15 @@ def cluster_markings(xyz: np.ndarray, cfg: MarkingsConfig) -> Clusters:
 
 
 def _dbscan(xyz: np.ndarray, cfg: MarkingsConfig) -> np.ndarray:
-    """3D DBSCAN on weighted voxel centroids; labels compact 0..C-1 in point order, -1 = noise."""
+    """3D DBSCAN (scikit-learn's labels, in blocks: dbscan.py) on weighted voxel centroids; labels compact
+    0..C-1 in point order, -1 = noise."""
     v = cfg.dbscan_voxel_m
     cell = np.floor((xyz - xyz.min(axis=0)) / v).astype(np.int64)
     dims = cell.max(axis=0) + 1
     key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
     _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
     cent = np.stack([np.bincount(inverse, xyz[:, k] - xyz[0, k]) for k in range(3)], axis=1) / counts[:, None]
-    db = DBSCAN(eps=cfg.dbscan_eps_m, min_samples=cfg.dbscan_min_samples, algorithm="kd_tree")
-    vox_labels = db.fit(cent, sample_weight=counts).labels_
+    vox_labels = dbscan(cent, cfg.dbscan_eps_m, cfg.dbscan_min_samples, weights=counts)
     labels = vox_labels[inverse]
     sizes = np.bincount(labels[labels >= 0]) if np.any(labels >= 0) else np.zeros(0, dtype=np.int64)
     small = sizes < cfg.min_cluster_points
@@ -199,17 +200,47 @@ def _line_fit(
     Returns centres, directions, lengths (inliers along the line) and widths (all points across it,
     so a blob with a thin line of inliers inside is not taken for a marking). The centre is the
     centre of the inliers' bounding box in the line's own frame (a stray bright point that DBSCAN
-    attached to a dash moves an axis-aligned box by decimetres).
+    attached to a dash moves an axis-aligned box by decimetres). The clusters are fitted in blocks
+    of about `_BLOCK_POINTS` points with their share of the seeded draws (`_uniforms`), so the
+    working memory does not grow with the drive and the result is the same as in one block.
     """
+    n_c = len(starts)
+    k, m = cfg.line_ransac_iterations, _RANSAC_SAMPLES
+    out = [np.zeros((n_c, 3)), np.zeros((n_c, 2)), np.zeros(n_c), np.zeros(n_c)]
+    ends = np.append(starts[1:], len(pts)) if n_c else starts
+    a = 0
+    while a < n_c:
+        b = max(int(np.searchsorted(ends, starts[a] + _BLOCK_POINTS, side="right")), a + 1)
+        lo, hi = int(starts[a]), int(ends[b - 1])
+        draws = (_uniforms(cfg.seed, a * k, (b - a, k)), _uniforms(cfg.seed, (n_c + a) * k, (b - a, k)),
+                 _uniforms(cfg.seed, 2 * n_c * k + a * m, (b - a, m)))
+        fit = _line_fit_block(pts[lo:hi], starts[a:b] - lo, sizes[a:b], draws, cfg)
+        for whole, part in zip(out, fit, strict=True):
+            whole[a:b] = part
+        a = b
+    return out[0], out[1], out[2], out[3]
+
+
+def _uniforms(seed: int, skip: int, shape: tuple[int, int]) -> np.ndarray:
+    """Uniform draws number `skip` onwards of `default_rng(seed)` (PCG64 draws one 64-bit word per
+    double), so a block's draws are those of one `random` call for all clusters: draws of all
+    pair starts (clusters x k), then all pair ends, then all scored samples."""
+    gen = np.random.Generator(np.random.PCG64(seed))
+    gen.bit_generator.advance(skip)
+    return gen.random(shape)
+
+
+def _line_fit_block(
+    pts: np.ndarray, starts: np.ndarray, sizes: np.ndarray, draws: tuple[np.ndarray, np.ndarray, np.ndarray],
+    cfg: MarkingsConfig,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`_line_fit` on the clusters of one block, with their uniform draws (pair starts, pair ends, scored samples)."""
     n_c = len(starts)
     label = np.repeat(np.arange(n_c), sizes)
     mean = np.stack([np.bincount(label, pts[:, k], n_c) for k in range(3)], axis=1) / sizes[:, None]
     xy = pts[:, :2] - mean[label, :2]
-    rng = np.random.default_rng(cfg.seed)
-    k = cfg.line_ransac_iterations
     pick = lambda r: starts[:, None] + np.minimum((r * sizes[:, None]).astype(np.int64), sizes[:, None] - 1)  # noqa: E731
-    i1, i2 = pick(rng.random((n_c, k))), pick(rng.random((n_c, k)))
-    js = pick(rng.random((n_c, _RANSAC_SAMPLES)))
+    i1, i2, js = (pick(r) for r in draws)
     best_u = np.tile([1.0, 0.0], (n_c, 1))
     best_p = np.zeros((n_c, 2))
     thr = cfg.line_ransac_distance_m

@@ -16,6 +16,7 @@ from lidar2xodr.errors import InputError
 from lidar2xodr.lanes.lookups import Lookups, Segments, _group_median
 from lidar2xodr.lanes.smoothing import _lam, _whittaker
 
+_PROJECT_BLOCK = 1 << 18  # points per block of `Frame.project`
 _LINE_FRAME_GAIN = 1.5  # the longest line replaces the first frame only when this much more paint runs along it
 
 
@@ -40,7 +41,15 @@ class Frame:
         return float(self.s[-1])
 
     def project(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Station, signed offset (left positive) and whether the foot lies inside the frame."""
+        """Station, signed offset (left positive) and whether the foot lies inside the frame.
+
+        In blocks of `_PROJECT_BLOCK` points: the working memory stays the same on any drive."""
+        if len(xy) <= _PROJECT_BLOCK:
+            return self._project(xy)
+        parts = [self._project(xy[a:a + _PROJECT_BLOCK]) for a in range(0, len(xy), _PROJECT_BLOCK)]
+        return tuple(np.concatenate([p[i] for p in parts]) for i in range(3))  # type: ignore[return-value]
+
+    def _project(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         _, k = self._tree.query(xy)
         best_s = np.zeros(len(xy))
         best_t = np.zeros(len(xy))

@@ -10,6 +10,8 @@ from lidar2xodr.config import LanesConfig
 from lidar2xodr.lanes.smoothing import _groups, _runs
 from lidar2xodr.lanes.tracks import _ABSENT_RUN, _Observed
 
+_SORT_CELLS = 1 << 20  # (line, station) cells sorted at once by `_present_columns`
+
 
 @dataclass
 class _Structure:
@@ -115,10 +117,17 @@ def _sorted_columns(t: np.ndarray, on: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 def _present_columns(t: np.ndarray, on: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """`_sorted_columns` cut to as many places as the fullest station has present lines: the places
-    below hold no line at any station (a long drive keeps ~90 rows but ~6 lines at a station)."""
-    order, ts = _sorted_columns(t, on)
-    depth = max(int(on.sum(axis=0).max(initial=0)), 1)
-    return order[:depth], ts[:depth]
+    below hold no line at any station (a long drive keeps ~90 rows but ~6 lines at a station).
+    Sorted in blocks of stations, so the full sort of one block is all that is held at once."""
+    depth = min(max(int(on.sum(axis=0).max(initial=0)), 1), len(t))
+    m = t.shape[1]
+    order = np.empty((depth, m), dtype=np.intp)
+    ts = np.empty((depth, m))
+    step = max(_SORT_CELLS // max(len(t), 1), 1)
+    for a in range(0, m, step):
+        o, v = _sorted_columns(t[:, a:a + step], on[:, a:a + step])
+        order[:, a:a + step], ts[:, a:a + step] = o[:depth], v[:depth]
+    return order, ts
 
 
 def _choose_carriageway(
