@@ -193,6 +193,7 @@ def _build_on_frame(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lanes
             f"ignored {n_short} marking pieces shorter than {cfg.min_section_length_m:g} m "
             "(stray returns, blobs, arrows)"
         )
+    del sub, curves, nearest, use, found, crossing, seen  # (lines, stations) and per-point arrays not used below
     pts = _Points(k_pt, t_pt, s_pt, inside, np.where(off, -1, label), xyz[:, 2])
     _add_tapers(fit, structure, pts.label, tapers)
     warnings.extend(taper_notes)
