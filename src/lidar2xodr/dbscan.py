@@ -56,7 +56,7 @@ def dbscan(points: np.ndarray, eps: float, min_samples: float, weights: np.ndarr
     np.minimum.at(name, bi, root[bj])
     labels = np.full(n, -1, dtype=np.int64)
     kept = name < n
-    uniq, rank = np.unique(name[kept], return_inverse=True)
+    _, rank = np.unique(name[kept], return_inverse=True)
     labels[kept] = rank
     return labels
 
