@@ -413,8 +413,9 @@ class _Terminal:
 def combine(chains: list[np.ndarray], clusters: Clusters, cfg: MarkingsConfig) -> list[np.ndarray]:
     """Merge chains end to start (search of `combine_search_m`) and chains lying on others, until stable."""
     chains = [_dist_sort(c, clusters.centers) for c in _prune_all(chains, clusters, cfg)]
+    ends: dict[bytes, list] = {}
     for _ in range(20):
-        linked = _link_terminals(chains, clusters, cfg)
+        linked = _link_terminals(chains, clusters, cfg, ends)
         merged = _absorb(linked, clusters, cfg)
         changed = len(merged) != len(chains)
         chains = merged
@@ -499,7 +500,8 @@ def _chain_dirs(chain: np.ndarray, clusters: Clusters) -> np.ndarray:
     return d
 
 
-def _terminals(chains: list[np.ndarray], clusters: Clusters, cfg: MarkingsConfig) -> _Terminal:
+def _terminals(chains: list[np.ndarray], clusters: Clusters, cfg: MarkingsConfig,
+               ends: dict[bytes, list] | None = None) -> _Terminal:
     """Head (index 2k) and tail (2k + 1) of every chain with outward directions and extrapolations.
 
     Terminals sit on the first and last elongated cluster: a blob at a chain's end (or a chain of
@@ -508,23 +510,34 @@ def _terminals(chains: list[np.ndarray], clusters: Clusters, cfg: MarkingsConfig
     dists = np.arange(cfg.search_step_m, cfg.combine_search_m + 1e-9, cfg.search_step_m)
     strong = _elongated(clusters, cfg)
     pts, outs, preds, valid = [], [], [], []
+    ends = {} if ends is None else ends
     for chain in chains:
-        keep = np.flatnonzero(strong[chain])
-        core = chain[keep[0] : keep[-1] + 1] if len(keep) else chain
-        d = _chain_dirs(core, clusters)
-        for seq, u in ((core[::-1], -d[0]), (core, d[-1])):
-            xy = clusters.centers[seq, :2]
-            o, p = _extrapolate(xy, u, dists)
-            pts.append(clusters.centers[seq[-1]])
-            outs.append(o)
-            preds.append(p)
-            valid.append(len(keep) > 0)
+        key = chain.tobytes()
+        if key not in ends:
+            ends[key] = _chain_ends(chain, clusters, strong, dists)
+        for point, out, pred, ok in ends[key]:
+            pts.append(point)
+            outs.append(out)
+            preds.append(pred)
+            valid.append(ok)
     return _Terminal(
         np.array(pts).reshape(-1, 3),
         np.array(outs).reshape(-1, 2),
         np.array(preds).reshape(-1, len(dists), 2),
         np.array(valid, dtype=bool),
     )
+
+
+def _chain_ends(chain: np.ndarray, clusters: Clusters, strong: np.ndarray, dists: np.ndarray) -> list[tuple]:
+    """(point, outward direction, extrapolation, valid) of a chain's head and tail."""
+    keep = np.flatnonzero(strong[chain])
+    core = chain[keep[0] : keep[-1] + 1] if len(keep) else chain
+    d = _chain_dirs(core, clusters)
+    out = []
+    for seq, u in ((core[::-1], -d[0]), (core, d[-1])):
+        o, p = _extrapolate(clusters.centers[seq, :2], u, dists)
+        out.append((clusters.centers[seq[-1]], o, p, len(keep) > 0))
+    return out
 
 
 def _elongated(clusters: Clusters, cfg: MarkingsConfig) -> np.ndarray:
@@ -577,11 +590,12 @@ class _UnionFind:
         return True
 
 
-def _link_terminals(chains: list[np.ndarray], clusters: Clusters, cfg: MarkingsConfig) -> list[np.ndarray]:
+def _link_terminals(chains: list[np.ndarray], clusters: Clusters, cfg: MarkingsConfig,
+                    ends: dict[bytes, list] | None = None) -> list[np.ndarray]:
     """Combine: join facing chain ends found along each end's extrapolation (shortest reach first)."""
     if len(chains) < 2:
         return chains
-    term = _terminals(chains, clusters, cfg)
+    term = _terminals(chains, clusters, cfg, ends)
     tree = cKDTree(term.point[:, :2])
     cos_max = np.cos(np.radians(cfg.combine_max_angle_deg))
     dists = np.arange(cfg.search_step_m, cfg.combine_search_m + 1e-9, cfg.search_step_m)
