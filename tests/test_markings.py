@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from synth_markings import arc, make_road, polyline_distance, straight
 
+from lidar2xodr import markings
 from lidar2xodr.config import MarkingsConfig
 from lidar2xodr.errors import InputError
 from lidar2xodr.markings import Clusters, cluster_markings, combine, find_candidates, search_mark
@@ -193,3 +194,29 @@ def test_chain_is_cut_at_a_hop_across_the_road_and_loses_off_line_blobs() -> Non
     )
     chains = combine([np.arange(7)], cl, CFG)
     assert sorted(sorted(c.tolist()) for c in chains) == [[0, 1, 3, 4], [2], [5], [6]]
+
+
+def test_chain_ends_are_computed_once_per_chain(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Combine's linking rounds reuse the ends of chains they did not change: the same candidates as
+    computing every chain's ends again in every round, with fewer extrapolations."""
+    road = make_road([straight(200.0), arc(300.0, 1500.0)], lane_widths=(3.75, 3.75), occlusions=8, seed=9)
+    calls = []
+    original = markings._chain_ends
+
+    def counted(*args: object) -> list:
+        calls.append(1)
+        return original(*args)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(markings, "_chain_ends", counted)
+    cached = find_candidates(road.cloud.xyz, CFG)
+    n_cached = len(calls)
+    terminals = markings._terminals
+    monkeypatch.setattr(markings, "_terminals",
+                        lambda chains, clusters, cfg, ends=None: terminals(chains, clusters, cfg))
+    calls.clear()
+    fresh = find_candidates(road.cloud.xyz, CFG)
+    assert n_cached < len(calls)
+    assert len(cached) == len(fresh) > 2
+    for a, b in zip(cached, fresh, strict=True):
+        assert np.array_equal(a.centers, b.centers)
+        assert np.array_equal(a.cluster_ids, b.cluster_ids)
