@@ -120,6 +120,7 @@ def bench_map(name: str, xodr: Path, out: Path, length_m: float, lane_target: fl
         lane_graph_wrong_m=m.get("lane_graph", {}).get("wrong_m"),
         lane_graph_unheld_m=m.get("lane_graph", {}).get("unheld_m"),
         lane_graph_eval_m=m.get("lane_graph", {}).get("eval_length_m"),
+        road_marks=(m.get("road_marks") or {}).get("agreement"),
         driven=(m.get("driven") or {}).get("share"),
         lane_target=lane_target,
     )

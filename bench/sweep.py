@@ -68,7 +68,7 @@ LEAP_MAX_M = 1e-3
 KINK_MAX_RAD = 1e-3
 
 TABLE_COLS = ["map", "seed", "built", "asam_errors", "leap_m", "kink_rad", "boundaries_rmse", "centerline_rmse",
-              "lane_count", "lane_graph", "lane_graph_breaks", "driven"]
+              "lane_count", "lane_graph", "lane_graph_breaks", "road_marks", "driven"]
 
 
 def commit_id() -> str:
@@ -221,10 +221,11 @@ def summarise(rows: list[dict]) -> dict:
         "cases": n,
         "built": len(built),
         "valid_maps": valid,
-        "medians": {k: median(k) for k in ("boundaries_rmse", "centerline_rmse", "lane_count", "lane_graph", "driven")},
+        "medians": {k: median(k) for k in ("boundaries_rmse", "centerline_rmse", "lane_count", "lane_graph",
+                                           "road_marks", "driven")},
         "worst": {"boundaries_rmse": worst("boundaries_rmse", True), "centerline_rmse": worst("centerline_rmse", True),
                   "lane_count": worst("lane_count", False), "lane_graph": worst("lane_graph", False),
-                  "driven": worst("driven", False)},
+                  "road_marks": worst("road_marks", False), "driven": worst("driven", False)},
         "meeting_targets": meeting,
         "share_meeting_targets": share,
         "above_0_5_m": above,
@@ -253,10 +254,11 @@ def format_summary(s: dict) -> str:
     return "\n".join(lines)
 
 
-CHANGE_KEYS = (("boundaries_rmse", 1), ("centerline_rmse", 1), ("lane_count", -1), ("lane_graph", -1), ("driven", -1))
+CHANGE_KEYS = (("boundaries_rmse", 1), ("centerline_rmse", 1), ("lane_count", -1), ("lane_graph", -1),
+               ("road_marks", -1), ("driven", -1))
 """Compared metrics and which way is worse (+1: a rise, -1: a fall)."""
 CHANGE_TOL = {"boundaries_rmse": 0.002, "centerline_rmse": 0.002, "lane_count": 0.002, "lane_graph": 0.002,
-              "driven": 0.002}
+              "road_marks": 0.002, "driven": 0.002}
 LIKE_FOR_LIKE = ("boundaries_rmse", "centerline_rmse")
 """RMSEs that are also compared on the common stretch where a case's driven share rose (`common_rmse`)."""
 

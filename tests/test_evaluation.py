@@ -361,3 +361,63 @@ def test_compare_trajectory_bad_input_is_one_line(tmp_path: Path) -> None:
                                       "--json", str(tmp_path / "m.json")])
     assert result.exit_code == 0, result.output
     assert json.loads((tmp_path / "m.json").read_text())["driven"]["share"] == pytest.approx(1.0)
+
+
+def _marked(src: Path, dst: Path, marks: dict[int, list[tuple[float, str]]]) -> Path:
+    """Copy of a one-road map with roadMark records (sOffset, type) on the lanes named by id."""
+    tree = etree.parse(str(src))
+    for lane in tree.getroot().iter("lane"):
+        for s, kind in marks.get(int(lane.get("id")), []):
+            etree.SubElement(lane, "roadMark", sOffset=repr(s), type=kind, weight="standard", color="white",
+                             width="0.15")
+    tree.write(str(dst))
+    return dst
+
+
+# right carriageway of `_road`: median border lane -1, driving lanes -2 and -3 (3.5 m each)
+_MARKS = {-1: [(0.0, "solid")], -2: [(0.0, "broken")], -3: [(0.0, "solid")]}
+
+
+def test_road_marks_of_a_map_against_itself_agree(tmp_path: Path) -> None:
+    ref = _marked(_map(tmp_path / "r.xodr", _road("1", 300.0, geom=ARC)), tmp_path / "ref.xodr", _MARKS)
+    marks = compare_maps(ref, ref, CFG)["road_marks"]
+    assert marks["agreement"] == pytest.approx(1.0)
+    assert marks["confusion_m"] == {}
+    assert marks["matched_m"] == pytest.approx(3 * 300.0, rel=0.02)
+
+
+def test_a_line_typed_solid_where_it_is_broken_is_counted_with_its_length(tmp_path: Path) -> None:
+    """The lane divider solid instead of broken on its last 200 m: a third of the matched length of the
+    three lines disagrees, as solid -> broken; a map without any roadMark has no paint anywhere."""
+    base = _map(tmp_path / "b.xodr", _road("1", 300.0, geom=ARC))
+    ref = _marked(base, tmp_path / "ref.xodr", _MARKS)
+    wrong = {**_MARKS, -2: [(0.0, "broken"), (100.0, "solid")]}
+    gen = _marked(base, tmp_path / "gen.xodr", wrong)
+    marks = compare_maps(gen, ref, CFG)["road_marks"]
+    assert marks["confusion_m"]["solid->broken"] == pytest.approx(200.0, rel=0.03)
+    assert marks["agreement"] == pytest.approx(700.0 / 900.0, rel=0.02)
+    bare = compare_maps(base, ref, CFG)["road_marks"]
+    assert bare["agreement"] == pytest.approx(0.0)
+    assert set(bare["confusion_m"]) == {"none->solid", "none->broken"}
+
+
+def test_road_marks_are_not_judged_where_two_reference_lines_coincide(tmp_path: Path) -> None:
+    """A reference lane 0.3 m wide (an opening taper: its broken divider and solid edge paint one line):
+    the generated line there is neither right nor wrong, so only the other lines are judged."""
+    ref_road = _road("1", 300.0, right=(MEDIAN, DRV, DRV, ("driving", 0.3)), geom=ARC)
+    ref = _marked(_map(tmp_path / "r.xodr", ref_road), tmp_path / "ref.xodr",
+                  {**_MARKS, -3: [(0.0, "broken")], -4: [(0.0, "solid")]})
+    gen = _marked(_map(tmp_path / "g.xodr", _road("1", 300.0, geom=ARC)), tmp_path / "gen.xodr", _MARKS)
+    marks = compare_maps(gen, ref, CFG)["road_marks"]
+    assert marks["agreement"] == pytest.approx(1.0)
+    assert marks["matched_m"] == pytest.approx(2 * 300.0, rel=0.02)
+
+
+def test_mark_classes() -> None:
+    from lidar2xodr.evaluation import mark_class
+
+    assert [mark_class(k) for k in ("solid", "solid solid", "curb", "edge")] == ["solid"] * 4
+    assert [mark_class(k) for k in ("broken", "broken broken", "botts dots")] == ["broken"] * 3
+    assert [mark_class(k) for k in ("solid broken", "broken solid")] == ["double"] * 2
+    assert [mark_class(k) for k in ("none", "grass")] == ["none"] * 2
+    assert mark_class("custom") == "other"

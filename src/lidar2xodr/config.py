@@ -346,6 +346,9 @@ class EvaluationConfig(_Section):
                                                              "opposite carriageway out)")
     lane_count_min_width_m: float = Field(1.75, gt=0, description="ours: narrower driving lanes (opening or closing "
                                           "tapers) are not counted; half the paper's 3.5 m lane")
+    mark_match_m: float = Field(1.0, gt=0, description="ours: a generated boundary sample's road mark is compared "
+                                "with its nearest reference boundary's when that lies this close (lines of a "
+                                "road lie 2 m or more apart, so the nearest one within 1 m is the same line)")
     lane_graph_step_m: float = Field(0.5, gt=0, description="ours: lane-graph agreement follows each reference "
                                      "lane centre in steps of this length; a tenth of a 6 m dash, so no lane "
                                      "section or link change is stepped over")

@@ -92,6 +92,17 @@ drive's GNSS bias, as the paper's drive-to-drive protocol compares drives of unb
    carriageways says it was built.
    `share` = built / driven length. The lateral metrics above only look at what was built: a change
    that builds less road (or the easy half of it) can lower them, so they are read beside this one.
+
+10. `road_marks`: are the lines painted as the reference paints them? Every generated boundary sample
+   of rule 1 whose nearest reference boundary lies within `mark_match_m` (1 m) is judged, unless that
+   reference line lies within `mark_match_m` of another border of its carriageway (a lane opening or
+   closing from zero width: its two lines' paint coincides, so either type is the paint seen). Both
+   roadMark types are reduced to what a driver may do (`mark_class`): solid, broken, double (solid
+   broken / broken solid), none, other. `agreement` = matched length of the same class / matched
+   length; `confusion_m` = the metres of each disagreement as generated -> reference; `unmatched_m`
+   the generated boundary length not judged. A lane change a simulated driver may make on the
+   generated map but not on the road (broken -> solid), or the other way round, shows here and in no
+   lateral metric.
 """
 
 from __future__ import annotations
@@ -176,6 +187,8 @@ class Carriageways:
     centre_z: np.ndarray  # (n,) road surface height at the centre line
     boundaries: Lines
     boundary_query: np.ndarray  # (k,) bool: False for the duplicate outer border of a zero-width lane
+    boundary_mark: np.ndarray  # (k,) mark class of each boundary sample (`mark_class`)
+    boundary_gap: np.ndarray  # (k,) distance to the nearest other border of its carriageway (inf: none)
     group_keys: list[tuple[str, int]]  # (road id, side) of each group index
 
     def lane_count(self, min_width: float) -> np.ndarray:
@@ -212,6 +225,7 @@ class _Piece:
     borders: list[np.ndarray]  # (n, 2) each, inner to outer
     border_z: list[np.ndarray]  # (n,) each
     border_t: list[np.ndarray]  # (n,) each
+    border_mark: list[np.ndarray]  # (n,) roadMark type each
 
 
 _DENSE = 5
@@ -280,16 +294,23 @@ def carriageways(odr: Any, step: float, transform: Any = None) -> Carriageways:
                 pieces.append(_Piece((sec.road_id, side), str(getattr(road, "junction", "-1")), sec.s, travel,
                                      [border_xy[b] for b in border_ids],
                                      [sec.border_xyz[b][:, 2] for b in border_ids],
-                                     [sec.border_t[b] for b in border_ids]))
+                                     [sec.border_t[b] for b in border_ids],
+                                     [sec.border_mark.get(b, np.full(len(sec.s), "none", dtype=object))
+                                      for b in border_ids]))
     centres: list[tuple[np.ndarray, np.ndarray]] = []
     bounds: list[tuple[np.ndarray, np.ndarray]] = []
     query: list[np.ndarray] = []
+    marks: list[np.ndarray] = []
+    gaps: list[np.ndarray] = []
     half, group, s_all, lane_xy, lane_w, centre_z = [], [], [], [], [], []
     groups: dict[tuple[str, int], int] = {}
     for p in pieces:
         prev_t = None
-        for xy, t in zip(p.borders, p.border_t, strict=True):
+        for i, (xy, t, mark) in enumerate(zip(p.borders, p.border_t, p.border_mark, strict=True)):
             bounds.append((xy, p.travel))
+            marks.append(np.array([mark_class(m) for m in mark], dtype=object))
+            near = [np.abs(t - p.border_t[j]) for j in (i - 1, i + 1) if 0 <= j < len(p.border_t)]
+            gaps.append(np.min(near, axis=0) if near else np.full(len(t), np.inf))
             query.append(np.ones(len(t), bool) if prev_t is None else np.abs(t - prev_t) > 1e-3)
             prev_t = t
     for chain in _bundles(pieces, JUNCTION_BUNDLE_TOL_M):
@@ -324,6 +345,8 @@ def carriageways(odr: Any, step: float, transform: Any = None) -> Carriageways:
         centre_z=_cat(centre_z, (0,)),
         boundaries=Lines.con_cat(bounds),
         boundary_query=_cat(query, (0,)).astype(bool),
+        boundary_mark=np.concatenate(marks) if marks else np.zeros(0, dtype=object),
+        boundary_gap=_cat(gaps, (0,)),
         group_keys=list(groups),
     )
 
@@ -536,7 +559,7 @@ def compare_maps(generated: Path, reference: Path, cfg: EvaluationConfig, align:
     tol = math.radians(cfg.heading_tolerance_deg)
 
     q = gen.boundary_query
-    d_b, _, _ = nearest(ref.boundaries, gen.boundaries.xy[q], gen.boundaries.hdg[q], tol)
+    d_b, v_b, _ = nearest(ref.boundaries, gen.boundaries.xy[q], gen.boundaries.hdg[q], tol)
     d_c, v_c, past_c = nearest(ref.centre, gen.centre.xy, gen.centre.hdg, tol)
     matched = (d_c <= gen.half_width + cfg.near_m) & ~past_c
 
@@ -562,6 +585,8 @@ def compare_maps(generated: Path, reference: Path, cfg: EvaluationConfig, align:
         "coverage": coverage,
         "reference_eval_length_m": ref_length,
         "lane_graph": lane_graph,
+        "road_marks": _road_marks(gen.boundary_mark[q], ref.boundary_mark[v_b], gen.boundaries.weight[q],
+                                  (d_b <= cfg.mark_match_m) & (ref.boundary_gap[v_b] >= cfg.mark_match_m)),
         "driven": None if trajectory is None else _driven(gen, ref, trajectory, cfg.sample_step_m, tol),
         "frame": frame,
         "alignment": alignment,
@@ -570,10 +595,47 @@ def compare_maps(generated: Path, reference: Path, cfg: EvaluationConfig, align:
             "near_m": cfg.near_m,
             "heading_tolerance_deg": cfg.heading_tolerance_deg,
             "lane_count_min_width_m": cfg.lane_count_min_width_m,
+            "mark_match_m": cfg.mark_match_m,
             "lane_graph_step_m": cfg.lane_graph_step_m,
             "lane_graph_min_width_m": cfg.lane_graph_min_width_m,
             "lane_graph_taper_m": cfg.lane_graph_taper_m,
         },
+    }
+
+
+MARK_CLASSES = ("solid", "broken", "double", "none", "other")
+
+
+def mark_class(mark_type: str) -> str:
+    """The class of an OpenDRIVE roadMark type that decides what a driver may do (rule 10): solid (no
+    crossing: solid, solid solid, curb, edge), broken (crossing allowed: broken, broken broken, botts
+    dots), double (solid broken or broken solid: crossing one way only), none (no paint: none, grass),
+    other (custom and anything else)."""
+    kind = str(mark_type).strip().lower()
+    if kind in ("solid", "solid solid", "curb", "edge"):
+        return "solid"
+    if kind in ("broken", "broken broken", "botts dots"):
+        return "broken"
+    if kind in ("solid broken", "broken solid"):
+        return "double"
+    if kind in ("none", "grass", ""):
+        return "none"
+    return "other"
+
+
+def _road_marks(gen: np.ndarray, ref: np.ndarray, weight: np.ndarray, matched: np.ndarray) -> dict[str, Any]:
+    """Rule 10: agreement of the road marks' classes on the matched boundary length, and the confusion
+    in metres (generated class -> reference class)."""
+    w = weight[matched]
+    g, r = gen[matched], ref[matched]
+    total = float(np.sum(w))
+    confusion = {f"{a}->{b}": round(float(np.sum(w[(g == a) & (r == b)])), 1)
+                 for a in MARK_CLASSES for b in MARK_CLASSES if a != b and np.any((g == a) & (r == b))}
+    return {
+        "agreement": float(np.sum(w[g == r]) / total) if total > 0 else None,
+        "matched_m": total,
+        "unmatched_m": float(np.sum(weight[~matched])),
+        "confusion_m": confusion,
     }
 
 
@@ -729,6 +791,12 @@ def print_metrics(metrics: dict[str, Any], console: Console) -> None:
     graph = metrics["lane_graph"]
     summary.add_row("lane graph agreement / breaks / wrong (m)",
                     f"{graph['agreement']:.3f} / {graph['breaks']} / {graph['wrong_m']:.0f}")
+    marks = metrics.get("road_marks")
+    if marks:
+        wrong = ", ".join(f"{k} {v:.0f} m" for k, v in sorted(marks["confusion_m"].items(), key=lambda kv: -kv[1]))
+        summary.add_row("road mark agreement (solid / broken / double / none)",
+                        "no matched boundary" if marks["agreement"] is None
+                        else f"{marks['agreement']:.3f}" + (f" ({wrong})" if wrong else ""))
     summary.add_row("evaluated reference length (m)", f"{metrics['reference_eval_length_m']:.0f}")
     summary.add_row("frame", metrics["frame"])
     console.print(summary)

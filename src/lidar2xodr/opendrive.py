@@ -436,6 +436,7 @@ class SampledSection:
     border_t: dict[int, np.ndarray]
     border_xyz: dict[int, np.ndarray]
     lane_types: dict[int, str]
+    border_mark: dict[int, np.ndarray] = field(default_factory=dict)  # roadMark type of each border ("none": no record)
 
 
 @dataclass
@@ -528,7 +529,20 @@ def _sample_section(road: Road, k: int, ls: LaneSection, s: np.ndarray) -> Sampl
         border_t=border_t,
         border_xyz=border_xyz,
         lane_types={lid: ls.lanes[lid].type for lid in ids},
+        border_mark={lid: _marks_at(ls.lanes[lid], s - ls.s) for lid in ids},
     )
+
+
+def _marks_at(lane: Lane, ds: np.ndarray) -> np.ndarray:
+    """The type of the lane's roadMark record in force at each ds from its section's start ("none" before
+    the first record or without any)."""
+    if not lane.road_marks:
+        return np.full(len(ds), "none", dtype=object)
+    starts = np.array([m.s_offset for m in lane.road_marks])
+    types = np.array([m.type for m in lane.road_marks], dtype=object)
+    order = np.argsort(starts, kind="stable")
+    at = np.searchsorted(starts[order], ds + 1e-9, side="right") - 1
+    return np.where(at >= 0, types[order][np.maximum(at, 0)], "none")
 
 
 def _frame(road: Road, ls: LaneSection, s: np.ndarray, ids: list[int], left: bool) -> tuple:
