@@ -1,4 +1,4 @@
-"""Road marks: the dash pattern and the painted width of every line."""
+"""Road marks: the dash pattern and the painted width of every line, and where a line's paint changes."""
 
 from __future__ import annotations
 
@@ -6,6 +6,7 @@ import numpy as np
 from scipy.stats import norm
 
 from lidar2xodr.config import LanesConfig
+from lidar2xodr.data import Boundary, LaneSection
 
 _SPREAD: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
@@ -40,6 +41,31 @@ def _mark_pattern(s_pts: np.ndarray, cfg: LanesConfig) -> tuple[str, float | Non
     dash = round(float(np.median(dashes)), 2) if len(dashes) else None
     gap = round(float(np.median(holes)), 2) if len(holes) else None
     return "broken", dash, gap
+
+
+def section_marks(sections: list[LaneSection], boundaries: list[Boundary], row_s: dict[int, np.ndarray],
+                  s0: float, cfg: LanesConfig) -> None:
+    """`LaneSection.marks`: each painted boundary typed again from its own points inside each section
+    (`_mark_pattern`), where they span `mark_stretch_min_m`; kept only where that differs from the
+    boundary's type over its whole length.
+
+    `row_s[id]`: the sorted stations of the boundary's points (absent: an implied, unpainted border);
+    `s0`: the station of the model's s = 0.
+    """
+    for sec in sections:
+        marks: dict[int, str] = {}
+        for bid in sec.boundary_ids:
+            b = boundaries[bid]
+            s_pts = row_s.get(bid)
+            if s_pts is None or b.mark_type == "none":
+                continue
+            part = s_pts[np.searchsorted(s_pts, sec.s_start + s0):np.searchsorted(s_pts, sec.s_end + s0)]
+            if len(part) < 10 or part[-1] - part[0] < cfg.mark_stretch_min_m:
+                continue
+            kind = _mark_pattern(part, cfg)[0]
+            if kind != b.mark_type:
+                marks[bid] = kind
+        sec.marks = marks or None
 
 
 def _spread_table() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
