@@ -292,14 +292,17 @@ def test_section_marks_type_each_sections_paint() -> None:
     dashes = np.concatenate([np.arange(a, a + 6.0, 0.2) for a in np.arange(400.0, 700.0, 18.0)])
     short = np.arange(700.0, 725.0, 0.2)
     far = np.concatenate([np.arange(a, a + 3.6, 0.05) for a in np.arange(390.0, 690.0, 5.0)])
+    long_run = np.concatenate([np.arange(390.0, 500.0, 0.2), dashes[dashes > 510.0]])
     boundaries = [Boundary(0, np.zeros(3), "solid"), Boundary(1, np.zeros(3), "solid"),
-                  Boundary(2, np.zeros(3), "none"), Boundary(3, np.zeros(3), "solid")]
-    sections = [LaneSection(0.0, 390.0, [0, 1, 3]), LaneSection(390.0, 690.0, [0, 1, 2, 3]),
+                  Boundary(2, np.zeros(3), "none"), Boundary(3, np.zeros(3), "solid"),
+                  Boundary(4, np.zeros(3), "broken")]
+    sections = [LaneSection(0.0, 390.0, [0, 1, 3]), LaneSection(390.0, 690.0, [0, 1, 2, 3, 4]),
                 LaneSection(690.0, 790.0, [0, 1, 3])]
     row_s = {0: np.arange(0.0, 790.0, 0.2) - 10.0, 1: np.concatenate([solid, dashes, short]) - 10.0,
-             3: np.concatenate([solid, far, short]) - 10.0}
+             3: np.concatenate([solid, far, short]) - 10.0, 4: np.sort(long_run) - 10.0}
     section_marks(sections, boundaries, row_s, -10.0, cfg)
-    assert [sec.marks for sec in sections] == [None, {1: "broken"}, None], "boundary 3: 1.4 m holes, a far solid"
+    assert [sec.marks for sec in sections] == [None, {1: "broken"}, None], \
+        "boundary 3: 1.4 m holes, a far solid; boundary 4: a 110 m run among dashes 12 m apart"
     assert [sec.mark_of(boundaries[1]) for sec in sections] == ["solid", "broken", "solid"]
     assert sections[1].mark_of(boundaries[2]) == "none"
 

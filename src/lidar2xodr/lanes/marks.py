@@ -53,9 +53,10 @@ def section_marks(sections: list[LaneSection], boundaries: list[Boundary], row_s
                   s0: float, cfg: LanesConfig) -> None:
     """`LaneSection.marks`: each painted boundary typed again from its own points inside each section
     (`_mark_pattern`), where they span `mark_stretch_min_m`; kept only where that differs from the
-    boundary's type over its whole length, and, for broken, only where the median gap is longer than
-    any hole a solid line seen far away shows (`_MAX_HOLE_M`): a stretch is less evidence than the whole
-    line, and a far solid edge's short runs between 1-2.5 m holes read as dashes.
+    boundary's type over its whole length, and only where the gaps agree: broken where the median gap
+    is longer than any hole a solid line seen far away shows (`_MAX_HOLE_M`), solid where it is not. A
+    stretch is less evidence than the whole line: a far solid edge's short runs between 1-2.5 m holes
+    read as dashes, and one long run among dashes 12 m apart (paint across a junction) as solid.
 
     `row_s[id]`: the sorted stations of the boundary's points (absent: an implied, unpainted border);
     `s0`: the station of the model's s = 0.
@@ -72,7 +73,7 @@ def section_marks(sections: list[LaneSection], boundaries: list[Boundary], row_s
                 continue
             kind = _mark_pattern(part, cfg)[0]
             holes = _runs_and_holes(part)[1]
-            if kind == "broken" and not (len(holes) and np.median(holes) > _MAX_HOLE_M):
+            if (kind == "broken") != bool(len(holes) and np.median(holes) > _MAX_HOLE_M):
                 continue
             if kind != b.mark_type:
                 marks[bid] = kind
