@@ -455,6 +455,22 @@ def test_sumo_warns_about_an_appearing_lane_unless_folded(written) -> None:
                         sumo["warnings"][0]), sumo["warnings"]
 
 
+def test_a_line_whose_paint_changes_gets_its_mark_per_section(tmp_path: Path) -> None:
+    """The right edge (boundary 3, solid) is the broken divider of the lane added beside it in the middle
+    section (`LaneSection.marks`): lane -3 carries it broken there and solid before and after."""
+    model = _make_road(1500.0, [(0.0, 0.0), (1500.0, 0.0)], extra=EXTRA)
+    model.sections[1].marks = {3: "broken"}
+    path = tmp_path / "marks.xodr"
+    export_opendrive(model, None, ExportConfig(), path)
+    secs = _sections_xml(path)
+    assert [sec.find("right/lane[@id='-3']/roadMark").get("type") for sec in secs] == ["solid", "broken", "solid"]
+    assert secs[1].find("right/lane[@id='-3']/roadMark").get("laneChange") == "both"
+    assert secs[1].find("right/lane[@id='-4']/roadMark").get("type") == "solid"
+    model.sections[0].marks = {4: "broken"}
+    with pytest.raises(InputError, match="lane section 0: mark 'broken' of boundary 4"):
+        export_opendrive(model, None, ExportConfig(), tmp_path / "bad.xodr")
+
+
 def test_two_way_road_has_left_lanes_on_the_divider(written) -> None:
     """Lane 0 on the divider: left lanes 1, 2 outwards, right lanes -1.. , links only on their own side."""
     model, path, _ = written["twoway"]

@@ -279,6 +279,53 @@ def test_save_load_round_trip(exit_lane: tuple[SynthRoad, LaneModel], tmp_path: 
     assert model_lines(back).keys() == model_lines(model).keys()
 
 
+def test_section_marks_type_each_sections_paint() -> None:
+    """A solid edge (continuous paint, 0-400 m) that goes on as the broken divider of a lane added beside
+    it (6 m dashes every 18 m, 400-700 m) is typed per section; a section where the line's points span
+    less than `mark_stretch_min_m`, an unpainted border, and a solid line seen far away (3.6 m runs
+    between 1.4 m holes: no gap of a dash pattern) keep their boundary's type."""
+    from lidar2xodr.data import Boundary, LaneSection
+    from lidar2xodr.lanes.marks import section_marks
+
+    cfg = LanesConfig()
+    solid = np.arange(0.0, 400.0, 0.2)
+    dashes = np.concatenate([np.arange(a, a + 6.0, 0.2) for a in np.arange(400.0, 700.0, 18.0)])
+    short = np.arange(700.0, 725.0, 0.2)
+    far = np.concatenate([np.arange(a, a + 3.6, 0.05) for a in np.arange(390.0, 690.0, 5.0)])
+    long_run = np.concatenate([np.arange(390.0, 500.0, 0.2), dashes[dashes > 510.0]])
+    boundaries = [Boundary(0, np.zeros(3), "solid"), Boundary(1, np.zeros(3), "solid"),
+                  Boundary(2, np.zeros(3), "none"), Boundary(3, np.zeros(3), "solid"),
+                  Boundary(4, np.zeros(3), "broken")]
+    sections = [LaneSection(0.0, 390.0, [0, 1, 3]), LaneSection(390.0, 690.0, [0, 1, 2, 3, 4]),
+                LaneSection(690.0, 790.0, [0, 1, 3])]
+    row_s = {0: np.arange(0.0, 790.0, 0.2) - 10.0, 1: np.concatenate([solid, dashes, short]) - 10.0,
+             3: np.concatenate([solid, far, short]) - 10.0, 4: np.sort(long_run) - 10.0}
+    section_marks(sections, boundaries, row_s, -10.0, cfg)
+    assert [sec.marks for sec in sections] == [None, {1: "broken"}, None], \
+        "boundary 3: 1.4 m holes, a far solid; boundary 4: a 110 m run among dashes 12 m apart"
+    assert [sec.mark_of(boundaries[1]) for sec in sections] == ["solid", "broken", "solid"]
+    assert sections[1].mark_of(boundaries[2]) == "none"
+
+
+def test_section_marks_round_trip_and_bad_ones_are_refused(exit_lane: tuple[SynthRoad, LaneModel],
+                                                          tmp_path: Path) -> None:
+    model = dataclasses.replace(exit_lane[1], sections=[dataclasses.replace(sec) for sec in exit_lane[1].sections])
+    sec = model.sections[-1]
+    sec.marks = {sec.boundary_ids[1]: "broken"}
+    path = tmp_path / "lanes.json"
+    save_lanes(model, path)
+    assert [s.marks for s in load_lanes(path).sections] == [s.marks for s in model.sections]
+    data = json.loads(path.read_text())
+    data["sections"][-1]["marks"] = {"99": "broken"}
+    path.write_text(json.dumps(data))
+    with pytest.raises(InputError, match="marks"):
+        load_lanes(path)
+    data["sections"][-1]["marks"] = {str(sec.boundary_ids[1]): "dotted"}
+    path.write_text(json.dumps(data))
+    with pytest.raises(InputError, match="marks"):
+        load_lanes(path)
+
+
 def test_load_rejects_malformed_files(exit_lane: tuple[SynthRoad, LaneModel], tmp_path: Path) -> None:
     path = tmp_path / "lanes.json"
     with pytest.raises(InputError, match="not found"):

@@ -159,11 +159,12 @@ def slice_model(model: LaneModel, k0: int, k1: int, drop: set[int] | None = None
         if len(ids) < 2:
             continue
         types = _kept_types(sec, ids)
+        marks = {i: m for i, m in (sec.marks or {}).items() if i in ids} or None
         if sections and sections[-1].boundary_ids == ids and sections[-1].divider_id == divider \
-                and sections[-1].lane_types == types:
+                and sections[-1].lane_types == types and sections[-1].marks == marks:
             sections[-1].s_end = b - s0
         else:
-            sections.append(LaneSection(a - s0, b - s0, ids, divider, types))
+            sections.append(LaneSection(a - s0, b - s0, ids, divider, types, marks))
     if sections:
         sections[0].s_start = 0.0
         sections[-1].s_end = s1 - s0
@@ -191,7 +192,8 @@ def flip_model(model: LaneModel) -> LaneModel:
     length = float(model.s[-1])
     boundaries = [replace(b, t=-np.asarray(b.t)[::-1].copy()) for b in model.boundaries]
     sections = [LaneSection(length - sec.s_end, length - sec.s_start, list(reversed(sec.boundary_ids)), sec.divider_id,
-                            None if sec.lane_types is None else list(reversed(sec.lane_types)))
+                            None if sec.lane_types is None else list(reversed(sec.lane_types)),
+                            None if sec.marks is None else dict(sec.marks))
                 for sec in reversed(model.sections)]
     return LaneModel(s=(length - model.s[::-1]).copy(), reference=model.reference[::-1].copy(), boundaries=boundaries,
                      sections=sections, candidates=model.candidates, origin=model.origin, warnings=list(model.warnings))

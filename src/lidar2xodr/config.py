@@ -255,6 +255,10 @@ class LanesConfig(_Section):
                                                "stretches up to this long (a broken line's gap, an occlusion)")
     solid_min_run_m: float = Field(20.0, gt=0, description="ours: painted runs longer than this (length-weighted "
                                                "median) make a solid line")
+    mark_stretch_min_m: float = Field(40.0, gt=0, description="ours: a line's paint is typed again in each lane "
+                                      "section where its points there span this much (two periods of a 6 m dash "
+                                      "and 12 m gap): a road's solid edge goes on as an exit lane's broken divider; "
+                                      "a shorter stretch keeps the type of the whole line")
     divider_min_length_m: float = Field(300.0, gt=0, description="ours: a solid line with lanes on both sides that "
                                                      "the ego never crosses separates the two directions when it is "
                                                      "that long")

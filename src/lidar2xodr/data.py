@@ -138,6 +138,9 @@ class LaneSection:
     `lane_types` names the OpenDRIVE type of each lane, left to right (lane k lies between
     boundary_ids[k] and boundary_ids[k + 1]): "driving", or "entry" / "exit" for an acceleration /
     deceleration lane that ends / begins in a taper; None means every lane is "driving".
+    `marks` gives, by boundary id, the mark type of a boundary whose paint in this section differs
+    from its own `mark_type` (a road's edge line that goes on as the broken divider of an exit lane
+    beside it); None or a missing id: the boundary's own type.
     """
 
     s_start: float
@@ -145,6 +148,11 @@ class LaneSection:
     boundary_ids: list[int]
     divider_id: int | None = None
     lane_types: list[str] | None = None
+    marks: dict[int, str] | None = None
+
+    def mark_of(self, boundary: Boundary) -> str:
+        """The mark type `boundary` has in this section."""
+        return (self.marks or {}).get(boundary.id, boundary.mark_type)
 
 
 @dataclass

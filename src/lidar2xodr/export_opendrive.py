@@ -138,7 +138,7 @@ import math
 import tempfile
 import warnings
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -702,6 +702,11 @@ def _check_model(model: LaneModel, cfg: ExportConfig, where: str = _WHERE) -> No
             raise InputError(where, f"boundary {b.id}: {np.size(b.t)} offsets for {len(s)} stations")
         if b.mark_type not in MARK_TYPES:
             raise InputError(where, f"boundary {b.id}: mark type {b.mark_type!r} (solid, broken or none)")
+    for j, sec in enumerate(model.sections):
+        for bid, kind in (sec.marks or {}).items():
+            if bid not in sec.boundary_ids or kind not in MARK_TYPES:
+                raise InputError(where, f"lane section {j}: mark {kind!r} of boundary {bid} (a boundary of the "
+                                         "section; solid, broken or none)")
     if not model.sections:
         raise InputError(where, "no lane sections")
     for j, sec in enumerate(model.sections):
@@ -813,15 +818,16 @@ def _constant(width: float, s0: float) -> _Records:
     return _Records(np.array([s0]), np.array([[width, 0.0, 0.0, 0.0]]))
 
 
-def _build_lanes(offset: _Records, fits: list[_SectionFit], bounds: dict[int, Boundary],
+def _build_lanes(offset: _Records, fits: list[_SectionFit], bounds: list[dict[int, Boundary]],
                  cfg: ExportConfig) -> xodr.Lanes:
+    """The lanes of every section; `bounds[j]`: the boundaries by id with their mark in section j."""
     lanes = xodr.Lanes()
     for start, (a, b, c, d) in zip(offset.starts, offset.coeffs, strict=True):
         lanes.add_laneoffset(xodr.LaneOffset(float(start), float(a), float(b), float(c), float(d)))
     built: list[xodr.LaneSection] = []
     for j, fit in enumerate(fits):
         centre = xodr.Lane()
-        centre.add_roadmark(_mark(bounds[fit.ids[fit.centre]]))
+        centre.add_roadmark(_mark(bounds[j][fit.ids[fit.centre]]))
         sec = xodr.LaneSection(float(fit.s0), centre)
         order = list(range(fit.centre - 1, -1, -1)) + list(range(fit.centre, len(fit.widths)))
         for i in order:
@@ -832,10 +838,10 @@ def _build_lanes(offset: _Records, fits: list[_SectionFit], bounds: dict[int, Bo
             if i in fit.succ:
                 lane.add_link("successor", fits[j + 1].lane_id(fit.succ[i]))
             if i < fit.centre:
-                lane.add_roadmark(_mark(bounds[fit.ids[i]]))
+                lane.add_roadmark(_mark(bounds[j][fit.ids[i]]))
                 sec.add_left_lane(lane)
             else:
-                lane.add_roadmark(_mark(bounds[fit.ids[i + 1]]))
+                lane.add_roadmark(_mark(bounds[j][fit.ids[i + 1]]))
                 sec.add_right_lane(lane)
         if cfg.left_border_m > 0:
             border = _lane(xodr.LaneType.border, _constant(cfg.left_border_m, fit.s0), fit.s0)
@@ -1152,7 +1158,8 @@ def _build_road(model: LaneModel, planes: GroundPlanes | None, cfg: ExportConfig
         geom = _ParamPoly3(*(float(c) for c in plan.u[i]), *(float(c) for c in plan.v[i]),
                            prange="normalized", length=float(plan.length[i]))
         planview.add_fixed_geometry(geom, float(plan.x[i]), float(plan.y[i]), float(plan.hdg[i]), s=float(plan.s[i]))
-    bounds = {b.id: b for b in model.boundaries}
+    bounds = [{b.id: b if sec.mark_of(b) == b.mark_type else replace(b, mark_type=sec.mark_of(b))
+               for b in model.boundaries} for sec in model.sections]
     road = xodr.Road(road_id, planview, _build_lanes(offset, fits, bounds, cfg), name=name, rule=xodr.TrafficRule.RHT)
     road.add_type(getattr(xodr.RoadType, cfg.road_type), 0.0)
     for rec_start, (a, b, c, d) in zip(elevation.starts, elevation.coeffs, strict=True):

@@ -25,7 +25,7 @@ from lidar2xodr.lanes.labels import (
     _labelling_curves,
 )
 from lidar2xodr.lanes.lookups import candidate_segments, global_lookup, lane_step, relative_lookups, split_candidates
-from lidar2xodr.lanes.marks import _mark_pattern, marking_widths
+from lidar2xodr.lanes.marks import _mark_pattern, marking_widths, section_marks
 from lidar2xodr.lanes.sections import _sections
 from lidar2xodr.lanes.smoothing import _lam, _runs, _whittaker
 from lidar2xodr.lanes.structure import _lane_structure, _Structure
@@ -356,6 +356,13 @@ def _assemble(
     sections, on_new, t_new = _sections(rows_on, rows_t, s, cfg.min_section_length_m)
     for i, bnd in enumerate(boundaries):
         bnd.t = t_new[i]
+    painted = inside & np.isin(label, ordered)
+    by_row = np.argsort(label[painted], kind="stable")
+    row_labels, row_starts = np.unique(label[painted][by_row], return_index=True)
+    row_pts = dict(zip(row_labels.tolist(), np.split(s_pt[painted][by_row], row_starts[1:]), strict=True)) \
+        if len(row_labels) else {}
+    row_s = {int(position[k]): np.sort(row_pts[int(old)]) for k, old in enumerate(ordered) if int(old) in row_pts}
+    section_marks(sections, boundaries, row_s, float(frame.s[a]), cfg)
     for i, c in enumerate(candidates):
         c.superline = int(new_id[superline[i]]) if superline[i] < len(new_id) else -1
     warnings.extend(_unused_notes(fit.t[:, a:b], on_new, {int(fit.row_of(old)): int(new_id[old]) for old in ordered},

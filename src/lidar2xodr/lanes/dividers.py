@@ -190,12 +190,14 @@ def _drop_partial_opposite(model: LaneModel, along: dict[int, bool]) -> None:
         cut_at.append(f"{sec.s_start:.0f}-{sec.s_end:.0f}")
         sec.boundary_ids = sec.boundary_ids[sec.boundary_ids.index(d) :]
         sec.divider_id = None
+        sec.marks = {i: m for i, m in (sec.marks or {}).items() if i in sec.boundary_ids} or None
     if not cut_at:
         return
     merged: list[LaneSection] = []
     for sec in model.sections:
         prev = merged[-1] if merged else None
-        if prev and prev.boundary_ids == sec.boundary_ids and prev.divider_id == sec.divider_id:
+        if prev and prev.boundary_ids == sec.boundary_ids and prev.divider_id == sec.divider_id \
+                and prev.marks == sec.marks:
             prev.s_end = sec.s_end
         else:
             merged.append(sec)

@@ -29,10 +29,12 @@ def _num(a: np.ndarray) -> list:
 def save_lanes(model: LaneModel, path: str | Path, network: dict | None = None) -> None:
     """Write the lane model as JSON (format `lidar2xodr.lanes/1`, NaN written as null), atomically.
 
-    Each section carries `divider_id` (null: one direction) and `lane_types` (one of `LANE_TYPES` per
-    lane, left to right; null: every lane driving); files written before them load with no divider
-    and driving lanes. `network` (from `branches.save_network`) adds the roads and junction links of a
-    carriageway that splits or merges; readers of the single road ignore it."""
+    Each section carries `divider_id` (null: one direction), `lane_types` (one of `LANE_TYPES` per
+    lane, left to right; null: every lane driving) and `marks` (boundary id -> mark type where the
+    section's paint differs from the boundary's; null: none differs); files written before them load
+    with no divider, driving lanes and the boundaries' own marks. `network` (from
+    `branches.save_network`) adds the roads and junction links of a carriageway that splits or
+    merges; readers of the single road ignore it."""
     data = model_dict(model)
     if network is not None:
         data["network"] = network
@@ -63,6 +65,7 @@ def model_dict(model: LaneModel) -> dict:
                 "boundary_ids": list(sec.boundary_ids),
                 "divider_id": sec.divider_id,
                 "lane_types": None if sec.lane_types is None else list(sec.lane_types),
+                "marks": None if not sec.marks else {str(k): v for k, v in sorted(sec.marks.items())},
             }
             for sec in model.sections
         ],
@@ -115,6 +118,20 @@ def _lane_types(value: object, n_lanes: int, where: str) -> list[str] | None:
     if not isinstance(value, list) or len(value) != n_lanes or not all(v in LANE_TYPES for v in value):
         raise InputError(where, f"lane_types {value!r} is not a list of {n_lanes} of {', '.join(LANE_TYPES)}")
     return [str(v) for v in value]
+
+
+def _section_marks(value: object, ids: list[int], where: str) -> dict[int, str] | None:
+    """A section's marks as read (absent or null: the boundaries' own, as files written before them)."""
+    if value is None:
+        return None
+    try:
+        marks = {int(k): v for k, v in value.items()}  # type: ignore[attr-defined]
+    except (AttributeError, TypeError, ValueError):
+        marks = None
+    if marks is None or not all(k in ids and v in MARK_TYPES for k, v in marks.items()):
+        raise InputError(where, f"marks {value!r} is not a map of the section's boundary ids to "
+                                f"{', '.join(MARK_TYPES)}")
+    return {k: str(v) for k, v in marks.items()} or None
 
 
 def load_lanes(path: str | Path) -> LaneModel:
@@ -179,6 +196,7 @@ def model_from(data: dict, path: str | Path) -> LaneModel:
                     [int(i) for i in sec["boundary_ids"]],
                     None if divider is None else int(divider),
                     _lane_types(sec.get("lane_types"), len(sec["boundary_ids"]) - 1, f"{path} section {j}"),
+                    _section_marks(sec.get("marks"), [int(i) for i in sec["boundary_ids"]], f"{path} section {j}"),
                 )
             )
         candidates = []

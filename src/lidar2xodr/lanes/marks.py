@@ -1,4 +1,4 @@
-"""Road marks: the dash pattern and the painted width of every line."""
+"""Road marks: the dash pattern and the painted width of every line, and where a line's paint changes."""
 
 from __future__ import annotations
 
@@ -6,8 +6,10 @@ import numpy as np
 from scipy.stats import norm
 
 from lidar2xodr.config import LanesConfig
+from lidar2xodr.data import Boundary, LaneSection
 
 _SPREAD: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+_MAX_HOLE_M = 2.5  # the longest hole a far, sparse line shows inside paint (the run-split limit's cap)
 
 
 def _mark_pattern(s_pts: np.ndarray, cfg: LanesConfig) -> tuple[str, float | None, float | None]:
@@ -20,13 +22,7 @@ def _mark_pattern(s_pts: np.ndarray, cfg: LanesConfig) -> tuple[str, float | Non
     """
     if len(s_pts) < 10:
         return "solid", None, None
-    s = np.sort(s_pts)
-    spacing = np.diff(s)
-    hole = float(np.clip(10.0 * np.median(spacing), 1.0, 2.5))
-    cut = np.flatnonzero(spacing > hole)
-    first = np.concatenate([[0], cut + 1])
-    last = np.concatenate([cut, [len(s) - 1]])
-    lengths = s[last] - s[first]
+    lengths, holes = _runs_and_holes(s_pts)
     order = np.argsort(lengths)
     cum = np.cumsum(lengths[order])
     if cum[-1] <= 0:
@@ -35,11 +31,53 @@ def _mark_pattern(s_pts: np.ndarray, cfg: LanesConfig) -> tuple[str, float | Non
     if weighted_median > cfg.solid_min_run_m:
         return "solid", None, None
     dashes = lengths[(lengths >= 1.0) & (lengths <= cfg.solid_min_run_m)]
-    holes = s[first[1:]] - s[last[:-1]]
     holes = holes[holes <= 3.0 * cfg.solid_min_run_m]
     dash = round(float(np.median(dashes)), 2) if len(dashes) else None
     gap = round(float(np.median(holes)), 2) if len(holes) else None
     return "broken", dash, gap
+
+
+def _runs_and_holes(s_pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lengths of the painted runs along s and of the holes between them (runs split at holes over 1-2.5 m:
+    10 median point spacings, capped at `_MAX_HOLE_M`)."""
+    s = np.sort(s_pts)
+    spacing = np.diff(s)
+    hole = float(np.clip(10.0 * np.median(spacing), 1.0, _MAX_HOLE_M))
+    cut = np.flatnonzero(spacing > hole)
+    first = np.concatenate([[0], cut + 1])
+    last = np.concatenate([cut, [len(s) - 1]])
+    return s[last] - s[first], s[first[1:]] - s[last[:-1]]
+
+
+def section_marks(sections: list[LaneSection], boundaries: list[Boundary], row_s: dict[int, np.ndarray],
+                  s0: float, cfg: LanesConfig) -> None:
+    """`LaneSection.marks`: each painted boundary typed again from its own points inside each section
+    (`_mark_pattern`), where they span `mark_stretch_min_m`; kept only where that differs from the
+    boundary's type over its whole length, and only where the gaps agree: broken where the median gap
+    is longer than any hole a solid line seen far away shows (`_MAX_HOLE_M`), solid where it is not. A
+    stretch is less evidence than the whole line: a far solid edge's short runs between 1-2.5 m holes
+    read as dashes, and one long run among dashes 12 m apart (paint across a junction) as solid.
+
+    `row_s[id]`: the sorted stations of the boundary's points (absent: an implied, unpainted border);
+    `s0`: the station of the model's s = 0.
+    """
+    for sec in sections:
+        marks: dict[int, str] = {}
+        for bid in sec.boundary_ids:
+            b = boundaries[bid]
+            s_pts = row_s.get(bid)
+            if s_pts is None or b.mark_type == "none":
+                continue
+            part = s_pts[np.searchsorted(s_pts, sec.s_start + s0):np.searchsorted(s_pts, sec.s_end + s0)]
+            if len(part) < 10 or part[-1] - part[0] < cfg.mark_stretch_min_m:
+                continue
+            kind = _mark_pattern(part, cfg)[0]
+            holes = _runs_and_holes(part)[1]
+            if (kind == "broken") != bool(len(holes) and np.median(holes) > _MAX_HOLE_M):
+                continue
+            if kind != b.mark_type:
+                marks[bid] = kind
+        sec.marks = marks or None
 
 
 def _spread_table() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
