@@ -471,6 +471,20 @@ def test_a_line_whose_paint_changes_gets_its_mark_per_section(tmp_path: Path) ->
         export_opendrive(model, None, ExportConfig(), tmp_path / "bad.xodr")
 
 
+def test_section_marks_survive_lanes_json(tmp_path: Path) -> None:
+    """`lanes` + `export` write what `build` writes: a model with a section's own mark exports the same
+    bytes straight and through lanes.json."""
+    from lidar2xodr.lanes import load_lanes, save_lanes
+
+    model = _make_road(1500.0, [(0.0, 0.0), (1500.0, 0.0)], extra=EXTRA)
+    model.sections[1].marks = {3: "broken"}
+    export_opendrive(model, None, ExportConfig(), tmp_path / "direct.xodr")
+    save_lanes(model, tmp_path / "lanes.json")
+    export_opendrive(load_lanes(tmp_path / "lanes.json"), None, ExportConfig(), tmp_path / "via.xodr")
+    assert (tmp_path / "via.xodr").read_bytes() == (tmp_path / "direct.xodr").read_bytes()
+    assert b'type="broken"' in (tmp_path / "via.xodr").read_bytes()
+
+
 def test_two_way_road_has_left_lanes_on_the_divider(written) -> None:
     """Lane 0 on the divider: left lanes 1, 2 outwards, right lanes -1.. , links only on their own side."""
     model, path, _ = written["twoway"]
