@@ -8,7 +8,7 @@ from synth_markings import SynthRoad, make_road, model_lines, polyline_distance,
 from lidar2xodr.config import LanesConfig, MarkingsConfig
 from lidar2xodr.data import LaneModel, Trajectory
 from lidar2xodr.lanes import build_lane_model
-from lidar2xodr.lanes.structure import _hold_to
+from lidar2xodr.lanes.structure import _extend, _hold_to
 from lidar2xodr.lanes.tracks import _continuations, _observed
 from lidar2xodr.markings import find_candidates
 
@@ -95,3 +95,19 @@ def test_a_carriageway_beside_another_beyond_a_median_is_one_way_whatever_the_eg
     model = _build(road)
     assert all(sec.divider_id is None for sec in model.sections)
     assert {len(sec.boundary_ids) - 1 for sec in model.sections} == {3}
+
+
+def test_a_line_followed_back_as_an_opening_taper_stops_inside_another_line() -> None:
+    """An edge that starts after a gore (row 3, from station 200, widening from 2.5 m to 3.5 m off the
+    divider) is followed back as an opening taper only where no line lies beyond it: the old edge
+    (row 2, -3.5 m up to station 150) ends that. Its lane, not row 3, is the outermost there."""
+    m = 300
+    t = np.full((4, m), np.nan)
+    t[0], t[1] = 3.5, 0.0
+    t[2, :150] = -3.5
+    k = np.arange(m)
+    t[3, 200:] = -np.minimum(2.5 + 0.025 * (k[200:] - 200), 3.5)
+    on = np.isfinite(t)
+    assert _extend(t, on, 3, 200, 1, 40, 300, 3.5)
+    followed = np.flatnonzero(on[3, :200])
+    assert len(followed) and followed.min() == 150, "followed back until the old edge lies beyond it"

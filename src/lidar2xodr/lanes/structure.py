@@ -375,7 +375,11 @@ def _open_beside_edge(t: np.ndarray, on: np.ndarray, b: int, start: int, inward:
 def _extend(
     t: np.ndarray, on: np.ndarray, b: int, start: int, inward: int, probe: int, reach: int, w_lane: float
 ) -> bool:
-    """Follow boundary b from station `start` outwards (against `inward`) while its new lane closes."""
+    """Follow boundary b from station `start` outwards (against `inward`) while its new lane closes.
+
+    An outermost line stops where another line lies beyond it: there, that line is the edge, and a
+    taper's line does not run inside it (an edge that starts after an exit's gore, followed back along
+    the old edge, bent the recentred frame 3.5 m on corridor_010 s2)."""
     window = np.arange(start, start + inward * probe, inward)
     window = window[(window >= 0) & (window < t.shape[1])]
     tb = t[b, start]
@@ -412,6 +416,9 @@ def _extend(
             tk = t[other, k] + (tb - t[other, start])
         elif other is None:
             tk = t[grow, k] - sign * max(w0 - slope * i, 0.0)
+            beyond = [j for j in range(len(t)) if j != b and on[j, k] and sign * (tk - t[j, k]) > 0]
+            if beyond:
+                return True
         else:
             return True
         width = sign * (t[grow, k] - tk)
