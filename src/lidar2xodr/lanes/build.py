@@ -317,7 +317,12 @@ def _assemble(
     med = np.array([np.nanmedian(t[i]) for i in used_at])
     ordered_at = used_at[np.argsort(-med, kind="stable")]
     used, ordered = structure.rows[used_at], structure.rows[ordered_at]
-    patterns = [_mark_pattern(s_pt[(label == old) & inside], cfg) for old in ordered]
+    painted = inside & np.isin(label, ordered)
+    by_row = np.argsort(label[painted], kind="stable")
+    row_labels, row_starts = np.unique(label[painted][by_row], return_index=True)
+    row_pts = dict(zip(row_labels.tolist(), np.split(s_pt[painted][by_row], row_starts[1:]), strict=True)) \
+        if len(row_labels) else {}
+    patterns = [_mark_pattern(row_pts.get(int(old), np.zeros(0)), cfg) for old in ordered]
     residuals = []
     for old in ordered:
         sel = (label == old) & inside
@@ -356,11 +361,6 @@ def _assemble(
     sections, on_new, t_new = _sections(rows_on, rows_t, s, cfg.min_section_length_m)
     for i, bnd in enumerate(boundaries):
         bnd.t = t_new[i]
-    painted = inside & np.isin(label, ordered)
-    by_row = np.argsort(label[painted], kind="stable")
-    row_labels, row_starts = np.unique(label[painted][by_row], return_index=True)
-    row_pts = dict(zip(row_labels.tolist(), np.split(s_pt[painted][by_row], row_starts[1:]), strict=True)) \
-        if len(row_labels) else {}
     row_s = {int(position[k]): np.sort(row_pts[int(old)]) for k, old in enumerate(ordered) if int(old) in row_pts}
     section_marks(sections, boundaries, row_s, float(frame.s[a]), cfg)
     for i, c in enumerate(candidates):

@@ -416,8 +416,10 @@ def _extend(
             tk = t[other, k] + (tb - t[other, start])
         elif other is None:
             tk = t[grow, k] - sign * max(w0 - slope * i, 0.0)
-            beyond = [j for j in range(len(t)) if j != b and on[j, k] and sign * (tk - t[j, k]) > 0]
-            if beyond:
+            with np.errstate(invalid="ignore"):
+                beyond = on[:, k] & (sign * (tk - t[:, k]) > 0)
+            beyond[b] = False
+            if beyond.any():
                 return True
         else:
             return True
