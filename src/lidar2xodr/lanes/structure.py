@@ -269,7 +269,8 @@ def _follow_tapers(
                         continue
                     if not _extend(t, on, b, start, inward, probe, reach, w_lane) \
                             and not (e - s >= min_run
-                                     and _open_beside_edge(t, on, b, start, inward, reach, cfg.min_lane_width_m)):
+                                     and _open_beside_edge(t, on, b, start, inward, reach,
+                                                           min(cfg.narrow_lane_width_m, cfg.min_lane_width_m))):
                         end = road[0] if inward == 1 else road[-1]
                         if abs(start - end) <= reach:
                             _hold_to(t, on, b, start, end, seen if solid is not None and solid[b] else None)
@@ -319,9 +320,13 @@ def _open_beside_edge(t: np.ndarray, on: np.ndarray, b: int, start: int, inward:
     (closes) along the carriageway's edge e (`_follow_tapers` asks only for a line kept over at least
     `min_section_length_m`: a line seen for a few metres at a drive's end shows no lane).
 
-    An entry or exit lane whose line is painted only where the lane has its full width: the line
-    starts with a whole lane between it and the edge, and before its start the edge comes in towards
-    p until the edge is one lane (b's) from p. The edge's course, not b's paint, shows the taper, so
+    An entry or exit lane whose line is painted (or found) only where the lane is wide: the line
+    starts with most of a lane between it and the edge, and before its start the edge comes in towards
+    p until the edge is one lane (b's) from p. `min_width` is the narrowest lane cars use
+    (`narrow_lane_width_m`), not `min_lane_width_m`: a line is kept only where it has a lane of that
+    width beside it, so at an exit whose lane grows from the edge its line starts near that width, and
+    was carried back at its offset to the diverging edge instead (highway_exit s2: a 0.6 m lane beside
+    the through lane over 100 m). The edge's course, not b's paint, shows the taper, so
     `_extend` (which measures the taper along b) does not see it. Only when e is the outermost line,
     the lane beyond b is at least `min_width` wide where b starts, and the edge's spacing to p shrinks
     without a jump to b's spacing within `reach` stations (the taper's far end, where b meets e),
