@@ -284,7 +284,9 @@ def _hold_to(
 ) -> None:
     """Carry boundary b from `start` to the road's end `end` at a constant offset from a neighbour.
 
-    The neighbour is the nearest of those that reach furthest towards the end. Lines start late or
+    The neighbour is the nearest of those that reach furthest towards the end and keep their spacing
+    to the other lines there (`_moves`): where a 2+1 road's centre line moves across, or an exit's
+    edge turns away, the line beside it that stays is the one b stays beside. Lines start late or
     end early near the ends of a drive because they were not yet (or no longer) observed, not
     because the lane count changes. A line that ends on another one (within 1 m: a lane that
     closed) is not carried. The outermost line (none kept beyond it on that side), when it is solid
@@ -300,7 +302,8 @@ def _hold_to(
     others = [j for j in range(len(t)) if j != b and on[j, start]]
     if not others or len(span) == 0:
         return
-    nb = max(others, key=lambda j: (round(float(on[j, span].mean()), 1), -abs(t[j, start] - t[b, start])))
+    nb = max(others, key=lambda j: (round(float(on[j, span].mean()), 1), not _moves(t, on, j, b, start, others, span),
+                                    -abs(t[j, start] - t[b, start])))
     offset = t[b, start] - t[nb, start]
     if min(abs(t[j, start] - t[b, start]) for j in others) < 1.0:
         return
@@ -312,6 +315,19 @@ def _hold_to(
     span = span[on[nb, span] & ~on[b, span]]
     t[b, span] = t[nb, span] + offset
     on[b, span] = True
+
+
+def _moves(t: np.ndarray, on: np.ndarray, j: int, b: int, start: int, others: list[int], span: np.ndarray) -> bool:
+    """Whether line j's spacing to more than half of the other present lines changes by over 1 m along
+    `span` (from their spacing at `start`): j moves against the road there, the others stay."""
+    shifts = []
+    for q in others:
+        if q in (j, b):
+            continue
+        both = span[on[j, span] & on[q, span]]
+        if len(both):
+            shifts.append(float(np.max(np.abs((t[j, both] - t[q, both]) - (t[j, start] - t[q, start])))))
+    return 2 * sum(x > 1.0 for x in shifts) > len(shifts)
 
 
 def _open_beside_edge(t: np.ndarray, on: np.ndarray, b: int, start: int, inward: int, reach: int,
