@@ -284,9 +284,10 @@ def _hold_to(
 ) -> None:
     """Carry boundary b from `start` to the road's end `end` at a constant offset from a neighbour.
 
-    The neighbour is the nearest of those that reach furthest towards the end and keep their spacing
-    to the other lines there (`_moves`): where a 2+1 road's centre line moves across, or an exit's
-    edge turns away, the line beside it that stays is the one b stays beside. Lines start late or
+    The neighbour is the nearest of those that reach furthest towards the end; where it moves against
+    the other lines there (`_moves`) and b's nearest line on its other side does not, that one: where
+    a 2+1 road's centre line moves across, the edge beside the passing lane's line stays, and so does
+    the line. Lines start late or
     end early near the ends of a drive because they were not yet (or no longer) observed, not
     because the lane count changes. A line that ends on another one (within 1 m: a lane that
     closed) is not carried. The outermost line (none kept beyond it on that side), when it is solid
@@ -302,8 +303,15 @@ def _hold_to(
     others = [j for j in range(len(t)) if j != b and on[j, start]]
     if not others or len(span) == 0:
         return
-    nb = max(others, key=lambda j: (round(float(on[j, span].mean()), 1), not _moves(t, on, j, b, start, others, span),
-                                    -abs(t[j, start] - t[b, start])))
+    def cover(j: int) -> float:
+        return round(float(on[j, span].mean()), 1)
+
+    nb = max(others, key=lambda j: (cover(j), -abs(t[j, start] - t[b, start])))
+    across = [j for j in others if (t[j, start] - t[b, start]) * (t[nb, start] - t[b, start]) < 0]
+    if across and _moves(t, on, nb, b, start, others, span):
+        alt = min(across, key=lambda j: abs(t[j, start] - t[b, start]))
+        if cover(alt) == cover(nb) and not _moves(t, on, alt, b, start, others, span):
+            nb = alt
     offset = t[b, start] - t[nb, start]
     if min(abs(t[j, start] - t[b, start]) for j in others) < 1.0:
         return
