@@ -41,8 +41,8 @@ Beyond the paper:
 - Lane sections follow LaneModel.sections. Lanes are linked (predecessor and successor, both ways)
   when their lateral extents overlap at the section change. A lane without predecessor starts at
   width 0 and one without successor ends at width 0; where its markings start at full width it
-  opens along a smoothstep over `taper_length_m`, and where they open by themselves (under half
-  its width over the first tenth of that length) it follows them. Linked lanes continue with the same width. An
+  opens along a smoothstep over `taper_length_m`, and where they open by themselves (reaching 90 %
+  of its width only after half that length) it follows them. Linked lanes continue with the same width. An
   outer lane that opens from width 0 is then folded into the section before (width 0 there; see
   export_sections.py: SUMO warns about the section change, links would be ASAM errors).
 - Lane types from LaneSection.lane_types (None: all "driving"): "entry" / "exit" for an acceleration /
@@ -539,15 +539,16 @@ def _smoothstep(x: np.ndarray) -> np.ndarray:
 def _taper(w: np.ndarray, dist: np.ndarray, taper: float) -> np.ndarray:
     """Width target of a lane that opens at dist = 0: within `taper` the data, capped by a smoothstep from 0.
 
-    Markings that already taper (under half the lane's width over the first tenth of the taper) stay as
-    measured, wherever they run below or above the smoothstep (highway_exit s2: a cap under a 50 m taper
-    pulled its edge 0.5 m in); a lane whose markings start at full width opens along the smoothstep to
-    its median width beyond the taper.
+    Markings that taper by themselves (reaching 90 % of the lane's width only after half the taper)
+    stay as measured, wherever they run below or above the smoothstep (highway_exit s2: a cap under a
+    50 m taper pulled its edge 0.5 m in); a lane whose markings start at full width, or reach it within
+    a few metres (a line cut where a lane leaves), opens along the smoothstep to its median width
+    beyond the taper.
     """
     far = dist >= taper
     full = float(np.median(w[far])) if far.any() else float(np.max(w))
-    near = (dist >= 0) & (dist < 0.1 * taper)
-    if near.any() and float(np.median(w[near])) < 0.5 * full:
+    wide = (dist >= 0) & (w >= 0.9 * full)
+    if wide.any() and float(np.min(dist[wide])) >= 0.5 * taper:
         return w
     cap = np.where(far, np.inf, full * _smoothstep(dist / taper))
     return np.minimum(w, cap)
