@@ -547,3 +547,7 @@ def test_a_lane_whose_markings_open_by_themselves_follows_them() -> None:
     full = np.full(len(dist), 3.5)
     capped = _taper(full, dist, 60.0)
     assert capped[0] == 0.0 and 1.7 < capped[30] < 1.8 and np.all(capped[60:] == 3.5)
+    cut = np.clip(dist / 10.0, 0.0, 1.0) * 3.5  # full within 10 m: a line cut where a lane leaves
+    assert np.array_equal(_taper(cut, dist, 60.0), np.minimum(cut, capped))
+    swing = np.where(dist < 20.0, 2.2, linear)  # starts wide, narrows, then opens: a ramp's line seen across
+    assert np.array_equal(_taper(swing, dist, 60.0), np.minimum(swing, capped))
