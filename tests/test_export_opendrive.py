@@ -534,3 +534,20 @@ def test_a_width_record_dipping_below_zero_is_replaced_by_a_non_negative_one() -
     assert np.array_equal(fixed.coeffs[1], rec.coeffs[1]), "a record that does not dip is left as it is"
     untouched = _Records(np.array([0.0]), np.array([[3.5, 0.0, 0.0, 0.0]]))
     assert np.array_equal(_non_negative(untouched, 100.0).coeffs, untouched.coeffs)
+
+
+def test_a_lane_whose_markings_open_by_themselves_follows_them() -> None:
+    """The smoothstep opens a lane whose markings start at full width; markings that open by
+    themselves over a shorter stretch are not pulled under it (an exit's edge 0.5 m inside)."""
+    from lidar2xodr.export_opendrive import _taper
+
+    dist = np.arange(0.0, 120.0, 1.0)
+    linear = np.clip(dist / 40.0, 0.0, 1.0) * 3.5
+    assert np.array_equal(_taper(linear, dist, 60.0), linear)
+    full = np.full(len(dist), 3.5)
+    capped = _taper(full, dist, 60.0)
+    assert capped[0] == 0.0 and 1.7 < capped[30] < 1.8 and np.all(capped[60:] == 3.5)
+    cut = np.clip(dist / 10.0, 0.0, 1.0) * 3.5  # full within 10 m: a line cut where a lane leaves
+    assert np.array_equal(_taper(cut, dist, 60.0), np.minimum(cut, capped))
+    swing = np.where(dist < 20.0, 2.2, linear)  # starts wide, narrows, then opens: a ramp's line seen across
+    assert np.array_equal(_taper(swing, dist, 60.0), np.minimum(swing, capped))

@@ -128,3 +128,18 @@ def test_a_line_painted_only_at_full_width_is_carried_back_to_where_the_edge_mee
     moving_inner[0] = -3.5 + np.clip((k - 100) / 60.0, 0.0, 1.0) * 3.5  # a 2+1 road's centre line moving across
     moving_inner[1] = -7.0  # the edge stays
     assert not _open_beside_edge(moving_inner, moving_on, 2, 160, 1, 120, 2.5), "the edge stayed: nothing opened"
+
+
+def test_a_line_found_only_once_its_lane_is_nearly_full_is_carried_along_the_inner_line() -> None:
+    """highway_exit s2: the exit lane's line was first kept where its lane was 2.4 m wide, under
+    `min_lane_width_m`; it was then carried back at its offset to the diverging edge, a 0.6 m lane
+    beside the through lane over 100 m. A lane as wide as the narrowest lane cars use is enough."""
+    from lidar2xodr.lanes.structure import _follow_tapers
+
+    t, _ = _edge_taper()
+    t[2, 142:160] = -3.5  # found from station 142, where the lane beyond is 2.45 m wide
+    on = np.isfinite(t)
+    # lanes 3 m wide elsewhere: over 0.8 of a lane where it starts, so `_extend` sees no taper on its own paint
+    t, on = _follow_tapers(t, on, 1.0, 3.0, LanesConfig(), None, np.array([False, True, False, True]))
+    assert on[2, 101:142].all() and np.allclose(t[2, 101:142], -3.5), "along the inner line, to where the edge meets it"
+    assert not on[2, :100].any()

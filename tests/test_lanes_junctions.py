@@ -111,3 +111,20 @@ def test_a_line_followed_back_as_an_opening_taper_stops_inside_another_line() ->
     assert _extend(t, on, 3, 200, 1, 40, 300, 3.5)
     followed = np.flatnonzero(on[3, :200])
     assert len(followed) and followed.min() == 150, "followed back until the old edge lies beyond it"
+
+
+def test_a_line_carried_back_stays_beside_the_neighbour_that_keeps_its_place() -> None:
+    """two_plus_one s3: a 2+1 road's centre line moves across a lane (3.5 m over 40 m) where the
+    passing lane begins; that lane's line, seen from there on, was carried back at its offset to the
+    moving centre line (its nearest neighbour) and ran out to the edge. It stays beside the edge."""
+    m = 300
+    k = np.arange(m, dtype=float)
+    centre = 3.5 - np.clip((k - 100) / 40.0, 0.0, 1.0) * 3.3
+    t = np.vstack([np.full(m, 7.0), np.where(k >= 140, 3.5, np.nan), centre, np.full(m, -3.5)])
+    on = np.isfinite(t)
+    _hold_to(t, on, 1, 140, 0)
+    assert on[1, :140].all() and np.allclose(t[1, :140], 3.5), "at its offset to the edge, not the centre line"
+    t, on = t[:3], on[:3].copy()  # no far edge: nothing tells which neighbour moved, the nearest is taken
+    on[1, :140] = False
+    _hold_to(t, on, 1, 140, 0)
+    assert np.allclose(t[1, :100], 3.5 + 3.3)

@@ -41,9 +41,11 @@ Beyond the paper:
 - Lane sections follow LaneModel.sections. Lanes are linked (predecessor and successor, both ways)
   when their lateral extents overlap at the section change. A lane without predecessor starts at
   width 0 and one without successor ends at width 0; where its markings start at full width it
-  opens along a smoothstep over `taper_length_m`. Linked lanes continue with the same width. An
-  outer lane that opens from width 0 is then folded into the section before (width 0 there; see
-  export_sections.py: SUMO warns about the section change, links would be ASAM errors).
+  opens along a smoothstep over `taper_length_m`, and where they open by themselves (under half
+  its width over the first tenth of that length, at 90 % of it only after half) it follows them.
+  Linked lanes continue with the same width. An outer lane that opens from width 0 is then folded
+  into the section before (width 0 there; see export_sections.py: SUMO warns about the section
+  change, links would be ASAM errors).
 - Lane types from LaneSection.lane_types (None: all "driving"): "entry" / "exit" for an acceleration /
   deceleration lane that ends / begins in a taper. Such a lane goes to width 0 only at its narrow end;
   at its wide end, where its outer line was first (last) seen, it starts (ends) at the measured width
@@ -538,11 +540,20 @@ def _smoothstep(x: np.ndarray) -> np.ndarray:
 def _taper(w: np.ndarray, dist: np.ndarray, taper: float) -> np.ndarray:
     """Width target of a lane that opens at dist = 0: within `taper` the data, capped by a smoothstep from 0.
 
-    Markings that already taper stay as measured; a lane whose markings start at full width opens
-    along the smoothstep to its median width beyond the taper.
+    Markings that taper by themselves (under half the lane's width over the first tenth of the taper,
+    at 90 % of it only after half the taper) stay as measured, wherever they run below or above the
+    smoothstep (highway_exit s2: a cap under a 50 m taper pulled its edge 0.5 m in). A lane whose
+    markings start at full width, reach it within a few metres (a line cut where a lane leaves) or
+    start wide and narrow again (a ramp's line seen across the lane) opens along the smoothstep to its
+    median width beyond the taper.
     """
     far = dist >= taper
     full = float(np.median(w[far])) if far.any() else float(np.max(w))
+    wide = (dist >= 0) & (w >= 0.9 * full)
+    near = (dist >= 0) & (dist < 0.1 * taper)
+    if wide.any() and float(np.min(dist[wide])) >= 0.5 * taper and near.any() \
+            and float(np.median(w[near])) < 0.5 * full:
+        return w
     cap = np.where(far, np.inf, full * _smoothstep(dist / taper))
     return np.minimum(w, cap)
 

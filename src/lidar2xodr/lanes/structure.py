@@ -269,7 +269,8 @@ def _follow_tapers(
                         continue
                     if not _extend(t, on, b, start, inward, probe, reach, w_lane) \
                             and not (e - s >= min_run
-                                     and _open_beside_edge(t, on, b, start, inward, reach, cfg.min_lane_width_m)):
+                                     and _open_beside_edge(t, on, b, start, inward, reach,
+                                                           min(cfg.narrow_lane_width_m, cfg.min_lane_width_m))):
                         end = road[0] if inward == 1 else road[-1]
                         if abs(start - end) <= reach:
                             _hold_to(t, on, b, start, end, seen if solid is not None and solid[b] else None)
@@ -283,7 +284,10 @@ def _hold_to(
 ) -> None:
     """Carry boundary b from `start` to the road's end `end` at a constant offset from a neighbour.
 
-    The neighbour is the nearest of those that reach furthest towards the end. Lines start late or
+    The neighbour is the nearest of those that reach furthest towards the end; where it moves against
+    the other lines there (`_moves`) and b's nearest line on its other side does not, that one: where
+    a 2+1 road's centre line moves across, the edge beside the passing lane's line stays, and so does
+    the line. Lines start late or
     end early near the ends of a drive because they were not yet (or no longer) observed, not
     because the lane count changes. A line that ends on another one (within 1 m: a lane that
     closed) is not carried. The outermost line (none kept beyond it on that side), when it is solid
@@ -299,7 +303,15 @@ def _hold_to(
     others = [j for j in range(len(t)) if j != b and on[j, start]]
     if not others or len(span) == 0:
         return
-    nb = max(others, key=lambda j: (round(float(on[j, span].mean()), 1), -abs(t[j, start] - t[b, start])))
+    def cover(j: int) -> float:
+        return round(float(on[j, span].mean()), 1)
+
+    nb = max(others, key=lambda j: (cover(j), -abs(t[j, start] - t[b, start])))
+    across = [j for j in others if (t[j, start] - t[b, start]) * (t[nb, start] - t[b, start]) < 0]
+    if across and _moves(t, on, nb, b, start, others, span):
+        alt = min(across, key=lambda j: abs(t[j, start] - t[b, start]))
+        if cover(alt) == cover(nb) and not _moves(t, on, alt, b, start, others, span):
+            nb = alt
     offset = t[b, start] - t[nb, start]
     if min(abs(t[j, start] - t[b, start]) for j in others) < 1.0:
         return
@@ -313,15 +325,32 @@ def _hold_to(
     on[b, span] = True
 
 
+def _moves(t: np.ndarray, on: np.ndarray, j: int, b: int, start: int, others: list[int], span: np.ndarray) -> bool:
+    """Whether line j's spacing to more than half of the other present lines changes by over 1 m along
+    `span` (from their spacing at `start`): j moves against the road there, the others stay."""
+    shifts = []
+    for q in others:
+        if q in (j, b):
+            continue
+        both = span[on[j, span] & on[q, span]]
+        if len(both):
+            shifts.append(float(np.max(np.abs((t[j, both] - t[q, both]) - (t[j, start] - t[q, start])))))
+    return 2 * sum(x > 1.0 for x in shifts) > len(shifts)
+
+
 def _open_beside_edge(t: np.ndarray, on: np.ndarray, b: int, start: int, inward: int, reach: int,
                       min_width: float) -> bool:
     """Carry line b back (forward) at its offset to its inner neighbour p while the lane beyond it opens
     (closes) along the carriageway's edge e (`_follow_tapers` asks only for a line kept over at least
     `min_section_length_m`: a line seen for a few metres at a drive's end shows no lane).
 
-    An entry or exit lane whose line is painted only where the lane has its full width: the line
-    starts with a whole lane between it and the edge, and before its start the edge comes in towards
-    p until the edge is one lane (b's) from p. The edge's course, not b's paint, shows the taper, so
+    An entry or exit lane whose line is painted (or found) only where the lane is wide: the line
+    starts with most of a lane between it and the edge, and before its start the edge comes in towards
+    p until the edge is one lane (b's) from p. `min_width` is the narrowest lane cars use
+    (`narrow_lane_width_m`), not `min_lane_width_m`: a line is kept only where it has a lane of that
+    width beside it, so at an exit whose lane grows from the edge its line starts near that width, and
+    was carried back at its offset to the diverging edge instead (highway_exit s2: a 0.6 m lane beside
+    the through lane over 100 m). The edge's course, not b's paint, shows the taper, so
     `_extend` (which measures the taper along b) does not see it. Only when e is the outermost line,
     the lane beyond b is at least `min_width` wide where b starts, and the edge's spacing to p shrinks
     without a jump to b's spacing within `reach` stations (the taper's far end, where b meets e),
