@@ -315,7 +315,9 @@ class ExportConfig(_Section):
         "motorway", description="ours: OpenDRIVE road type (the paper's drives are motorways)")
     lane_record_m: float = Field(25.0, gt=0, description="ours: length of the laneOffset/width cubic records")
     taper_length_m: float = Field(60.0, gt=0, description="ours: an appearing lane whose markings start at full width "
-                                              "opens from 0 over this length (ends likewise)")
+                                              "opens from 0 over this length (ends likewise); markings "
+                                              "under half the width over its first tenth and at 90 % of "
+                                              "it only after half of it are followed as measured")
     right_shoulder_m: float = Field(0.0, ge=0, description="ours: width of a 'shoulder' lane outside the right edge "
                                                "line; 0 = none (not measured, so off by default)")
     left_border_m: float = Field(0.0, ge=0, description="ours: width of a 'border' lane left of the leftmost line; 0 "
