@@ -467,7 +467,10 @@ def _bridge_gaps(lines: _Lines, gap: int, parallel_m: float) -> None:
     the frame, which bends wherever the frame does. Neighbours whose offset to the line changes
     least across the gap (in steps of `parallel_m`) come first: one that diverges from the line
     there (an exit lane's edge leaving where the edge line turns into a broken one) would carry
-    the bridge out with it. Only lines whose spans hold the gap's ends are looked at."""
+    the bridge out with it. Among those, a neighbour that keeps its spacing to the other lines inside
+    the gap comes before one that strays from them and comes back (`_moves_within`: on a 2+1 road the
+    centre line moves across a lane and back, the passing lane's line was bridged along it out to the
+    edge). Only lines whose spans hold the gap's ends are looked at."""
     first, last = lines.spans()
     m, ts, obs = lines.m, lines.t, lines.observed
 
@@ -483,14 +486,15 @@ def _bridge_gaps(lines: _Lines, gap: int, parallel_m: float) -> None:
             if g1 - g0 < gap or g0 == 0 or g1 >= m:
                 continue
             best, best_key = None, None
-            for nb in np.flatnonzero((first <= g0 - 1) & (last >= g1)):
+            spanning = [int(nb) for nb in np.flatnonzero((first <= g0 - 1) & (last >= g1)) if nb != b
+                        and np.all(np.isfinite(ts[nb][g0 - 1 - int(first[nb]) : g1 + 1 - int(first[nb])]))]
+            for nb in spanning:
                 f = int(first[nb])
-                if nb == b or not np.all(np.isfinite(ts[nb][g0 - 1 - f : g1 + 1 - f])):
-                    continue
                 drift = abs((at(b, g1) - at(nb, g1)) - (at(b, g0 - 1) - at(nb, g0 - 1)))
                 share = float(obs[nb][g0 - f : g1 - f].mean())
                 steps = int(drift / parallel_m) if math.isfinite(drift) else 0
-                key = (-steps, share, -abs(at(nb, g0) - at(b, g0)))
+                key = (-steps, not _moves_within(ts, first, nb, spanning, g0, g1, parallel_m), share,
+                       -abs(at(nb, g0) - at(b, g0)))
                 if share >= 0.25 and (best_key is None or key > best_key):
                     best, best_key = int(nb), key
             if best is None:
@@ -499,6 +503,20 @@ def _bridge_gaps(lines: _Lines, gap: int, parallel_m: float) -> None:
             f = (np.arange(g0, g1) - (g0 - 1)) / (g1 - g0 + 1)
             fb = int(first[best])
             ts[b][r0:r1] = ts[best][g0 - fb : g1 - fb] + w0 + (w1 - w0) * f
+
+
+def _moves_within(ts: list[np.ndarray], first: np.ndarray, nb: int, spanning: list[int], g0: int, g1: int,
+                  parallel_m: float) -> bool:
+    """Whether line nb's spacing to more than half of the other lines spanning the gap g0..g1 strays by
+    over `parallel_m` inside it from its spacing where the gap begins (a 2+1 road's centre line moving
+    across a lane and back)."""
+    def piece(j: int) -> np.ndarray:
+        f = int(first[j])
+        return ts[j][g0 - 1 - f : g1 - f]
+
+    strays = [float(np.max(np.abs((piece(nb) - piece(q)) - (piece(nb)[0] - piece(q)[0])))) for q in spanning
+              if q != nb]
+    return 2 * sum(x > parallel_m for x in strays) > len(strays)
 
 
 @dataclass
