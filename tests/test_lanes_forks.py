@@ -143,3 +143,20 @@ def test_a_line_found_only_once_its_lane_is_nearly_full_is_carried_along_the_inn
     t, on = _follow_tapers(t, on, 1.0, 3.0, LanesConfig(), None, np.array([False, True, False, True]))
     assert on[2, 101:142].all() and np.allclose(t[2, 101:142], -3.5), "along the inner line, to where the edge meets it"
     assert not on[2, :100].any()
+
+
+def test_a_gap_is_bridged_along_the_neighbour_that_does_not_stray_inside_it() -> None:
+    """two_plus_one: the passing lane's line (row 1, at 1.7) is unobserved where the centre line (row 0)
+    moves across a lane and back (stations 100-199); both the centre and the edge (row 2, at 5.2) have
+    the same spacing to row 1 at the gap's two ends, and the centre is nearer. Bridged along the centre,
+    the line ran out to the edge; it is bridged along the edge, which keeps its spacing to the far edge
+    (row 3) inside the gap."""
+    k = np.arange(M, dtype=float)
+    across = np.clip(np.minimum(k - 100, 199 - k) / 30.0, 0.0, 1.0) * 3.4
+    t = np.vstack([-1.7 + across, np.full(M, 1.7), np.full(M, 5.2), np.full(M, -5.2)])
+    t[1, 100:200] = 0.0  # unobserved: the fit's values there are replaced by the bridge
+    observed = np.ones_like(t, dtype=bool)
+    observed[1, 100:200] = False
+    lines = _Lines.from_dense(t, observed)
+    _bridge_gaps(lines, 20, 0.5)
+    assert np.allclose(lines.dense(np.array([1]))[0, 100:200], 1.7, atol=1e-9)
