@@ -87,7 +87,8 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
 
 
 def _bridge_gaps_dense(t: np.ndarray, observed: np.ndarray, gap: int, parallel_m: float) -> None:
-    """The bridging as it was written before: every row against every row."""
+    """The bridging written on the whole array: every row against every row (a neighbour that strays
+    from most other spanning rows inside the gap after those that do not, as `tracks._moves_within`)."""
     for b in range(len(t)):
         fin = np.flatnonzero(np.isfinite(t[b]))
         if len(fin) == 0:
@@ -98,13 +99,14 @@ def _bridge_gaps_dense(t: np.ndarray, observed: np.ndarray, gap: int, parallel_m
             if g1 - g0 < gap or g0 == 0 or g1 >= t.shape[1]:
                 continue
             best, best_key = None, None
-            for nb in range(len(t)):
-                if nb == b or not np.all(np.isfinite(t[nb, g0 - 1 : g1 + 1])):
-                    continue
+            spanning = [nb for nb in range(len(t)) if nb != b and np.all(np.isfinite(t[nb, g0 - 1 : g1 + 1]))]
+            for nb in spanning:
                 drift = abs(float((t[b, g1] - t[nb, g1]) - (t[b, g0 - 1] - t[nb, g0 - 1])))
                 share = float(observed[nb, g0:g1].mean())
                 steps = int(drift / parallel_m) if np.isfinite(drift) else 0
-                key = (-steps, share, -abs(float(t[nb, g0] - t[b, g0])))
+                gaps = t[nb, g0 - 1 : g1] - t[[q for q in spanning if q != nb], g0 - 1 : g1]
+                strays = np.max(np.abs(gaps - gaps[:, :1]), axis=1) > parallel_m
+                key = (-steps, not 2 * int(strays.sum()) > len(strays), share, -abs(float(t[nb, g0] - t[b, g0])))
                 if share >= 0.25 and (best_key is None or key > best_key):
                     best, best_key = nb, key
             if best is None:
