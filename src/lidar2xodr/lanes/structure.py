@@ -8,7 +8,7 @@ import numpy as np
 
 from lidar2xodr.config import LanesConfig
 from lidar2xodr.lanes.smoothing import _groups, _runs
-from lidar2xodr.lanes.tracks import _ABSENT_RUN, _Observed
+from lidar2xodr.lanes.tracks import _ABSENT_RUN, _Observed, _strays
 
 _SORT_CELLS = 1 << 20  # (line, station) cells sorted at once by `_present_columns`
 
@@ -287,9 +287,8 @@ def _hold_to(
     The neighbour is the nearest of those that reach furthest towards the end; where it moves against
     the other lines there (`_moves`) and b's nearest line on its other side does not, that one: where
     a 2+1 road's centre line moves across, the edge beside the passing lane's line stays, and so does
-    the line. Lines start late or
-    end early near the ends of a drive because they were not yet (or no longer) observed, not
-    because the lane count changes. A line that ends on another one (within 1 m: a lane that
+    the line. Lines start late or end early near the ends of a drive because they were not yet (or
+    no longer) observed, not because the lane count changes. A line that ends on another one (within 1 m: a lane that
     closed) is not carried. The outermost line (none kept beyond it on that side), when it is solid
     (`seen` given), is not carried past the first stretch of `_ABSENT_RUN` stations where marking
     points were measured more than 1 m beyond it but none where it would run (those would be the
@@ -327,15 +326,11 @@ def _hold_to(
 
 def _moves(t: np.ndarray, on: np.ndarray, j: int, b: int, start: int, others: list[int], span: np.ndarray) -> bool:
     """Whether line j's spacing to more than half of the other present lines changes by over 1 m along
-    `span` (from their spacing at `start`): j moves against the road there, the others stay."""
-    shifts = []
-    for q in others:
-        if q in (j, b):
-            continue
-        both = span[on[j, span] & on[q, span]]
-        if len(both):
-            shifts.append(float(np.max(np.abs((t[j, both] - t[q, both]) - (t[j, start] - t[q, start])))))
-    return 2 * sum(x > 1.0 for x in shifts) > len(shifts)
+    `span` from their spacing at `start` (`tracks._strays`): j moves against the road there, the others
+    stay."""
+    ks = np.concatenate([[start], span])
+    rest = [q for q in others if q not in (j, b)]
+    return _strays(np.where(on[j, ks], t[j, ks], np.nan), np.where(on[rest][:, ks], t[rest][:, ks], np.nan), 1.0)
 
 
 def _open_beside_edge(t: np.ndarray, on: np.ndarray, b: int, start: int, inward: int, reach: int,

@@ -505,18 +505,26 @@ def _bridge_gaps(lines: _Lines, gap: int, parallel_m: float) -> None:
             ts[b][r0:r1] = ts[best][g0 - fb : g1 - fb] + w0 + (w1 - w0) * f
 
 
+def _strays(own: np.ndarray, others: np.ndarray, tol: float) -> bool:
+    """Whether a line's spacing to more than half of the other lines changes by over `tol` from its
+    spacing at the first station. own (n,), others (K, n): offsets on the same stations, NaN where a
+    line is absent; a line absent on every station after the first does not count."""
+    shift = np.abs((own[None, :] - others) - (own[0] - others[:, :1]))
+    seen = np.isfinite(shift[:, 1:]).any(axis=1)
+    far = np.any(np.nan_to_num(shift, nan=0.0) > tol, axis=1)
+    return 2 * int(np.sum(far & seen)) > int(seen.sum())
+
+
 def _moves_within(ts: list[np.ndarray], first: np.ndarray, nb: int, spanning: list[int], g0: int, g1: int,
                   parallel_m: float) -> bool:
-    """Whether line nb's spacing to more than half of the other lines spanning the gap g0..g1 strays by
-    over `parallel_m` inside it from its spacing where the gap begins (a 2+1 road's centre line moving
-    across a lane and back)."""
+    """Whether line nb strays inside the gap g0..g1 from most other lines spanning it (`_strays`, from
+    their spacing where the gap begins: a 2+1 road's centre line moving across a lane and back)."""
     def piece(j: int) -> np.ndarray:
         f = int(first[j])
         return ts[j][g0 - 1 - f : g1 - f]
 
-    strays = [float(np.max(np.abs((piece(nb) - piece(q)) - (piece(nb)[0] - piece(q)[0])))) for q in spanning
-              if q != nb]
-    return 2 * sum(x > parallel_m for x in strays) > len(strays)
+    rest = [piece(q) for q in spanning if q != nb]
+    return _strays(piece(nb), np.array(rest).reshape(len(rest), g1 - g0 + 1), parallel_m)
 
 
 @dataclass
