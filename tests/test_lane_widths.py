@@ -113,3 +113,18 @@ def test_check_reports_width_warnings_without_failing(tmp_path: Path) -> None:
     res = check_file(_map(tmp_path, _w(0, 0.5)), readers=False)
     assert res["ok"] is True and len(res["lane_widths"]["narrow"]) == 1
     assert res["lane_widths"]["warnings"][0].startswith("road 1 lane -2: narrower than 1.0 m")
+
+
+def test_a_lane_wider_than_any_lane_is_warned_about(tmp_path: Path) -> None:
+    """A border that leaves the road: the lane widens from 3.5 m at 0.05 m per metre, over 5 m from s = 30."""
+    res = _findings(tmp_path, _w(0, 3.5, 0.05))
+    [wide] = res["wide"]
+    assert (wide["road"], wide["lane"], wide["s_start"], wide["s_end"]) == ("1", -2, 30.5, 200.0)
+    assert wide["max_width_m"] == pytest.approx(13.5)
+    assert res["warnings"] == ["road 1 lane -2: wider than 5.0 m over 169.5 m (s 30.5-200.0, up to 13.50 m): two "
+                               "lanes as one, or a border that left the road"]
+    # a 4.5 m lane is a lane; 25 m over 5 m (widening to 6 m at the end) is not long
+    assert _findings(tmp_path, _w(0, 4.5))["warnings"] == []
+    assert _findings(tmp_path, _w(0, 3.5) + _w(175, 5.0, 0.04))["wide"] == []
+    assert _findings(tmp_path, _w(0, 7.0), lane_type="shoulder")["warnings"] == []
+    assert _findings(tmp_path, _w(0, 7.0), cfg=CheckConfig(wide_lane_m=8.0))["warnings"] == []

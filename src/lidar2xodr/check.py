@@ -40,7 +40,8 @@ Three parts:
 * `lane_widths` (.xodr, quality/lane_widths.py): `negative` lists every lane width record whose
   cubic drops below 0 on its range (road, section, lane, s and the width there; an error);
   `zero_width` and `narrow` the stretches of driving lanes kept at width ~0 or narrower than 1 m
-  (outside their tapers) for more than 30 m (warnings; the numbers are `CheckConfig`'s).
+  (outside their tapers) for more than 30 m, `wide` those wider than 5 m for more than 30 m (warnings;
+  the numbers are `CheckConfig`'s).
 
 Verdict: `ok` is False when the ASAM checker reports at least one error, when the project's
 OpenDRIVE reader cannot evaluate the geometry (`continuity.error`), a lane width record is
@@ -428,8 +429,8 @@ def print_check(result: dict[str, Any], console: Console, max_issues: int = 20) 
     widths = result.get("lane_widths", {})
     if widths:
         table.add_row("negative lane width records", str(len(widths["negative"])))
-        table.add_row("zero-width / narrow driving lane stretches",
-                      f"{len(widths['zero_width'])} / {len(widths['narrow'])}")
+        table.add_row("zero-width / narrow / wide driving lane stretches",
+                      f"{len(widths['zero_width'])} / {len(widths['narrow'])} / {len(widths.get('wide', []))}")
     for rd in result.get("readers", {}).values():
         if not rd["available"]:
             table.add_row("reader", rd["note"])

@@ -417,7 +417,8 @@ class ReportConfig(_Section):
 
 
 class CheckConfig(_Section):
-    """`check`: lane widths a map should not have (issue #13: sliver lanes, zero-width lanes kept long)."""
+    """`check`: lane widths a map should not have (issue #13: sliver lanes, zero-width lanes kept long, lanes
+    wider than any lane)."""
 
     narrow_lane_m: float = Field(1.0, gt=0, description="ours: a driving lane narrower than this holds no car "
                                  "(~1.9 m wide); warned about where it stays so over more than narrow_lane_max_m")
@@ -431,6 +432,11 @@ class CheckConfig(_Section):
     zero_width_max_m: float = Field(30.0, gt=0, description="ours: longest zero-width stretch not warned about (a "
                                     "taper's first metre is far shorter)")
     width_step_m: float = Field(0.5, gt=0, description="ours: lane widths are sampled this often along each section")
+    wide_lane_m: float = Field(5.0, gt=0, description="ours: a driving lane wider than this is two lanes built as one "
+                               "or has a border that left the road (motorway lanes are 3.5-3.75 m, ramps in tight "
+                               "curves up to ~4.5 m); as lanes.max_lane_width_m, the widest spacing of one lane")
+    wide_lane_max_m: float = Field(30.0, gt=0, description="ours: longest wide stretch not warned about (about 1 s "
+                                   "at motorway speed, as narrow_lane_max_m)")
 
 
 class InterchangeConfig(_Section):
