@@ -18,6 +18,7 @@ from lidar2xodr.lanes.smoothing import _lam, _whittaker
 
 _PROJECT_BLOCK = 1 << 18  # points per block of `Frame.project`
 _LINE_FRAME_GAIN = 1.5  # the longest line replaces the first frame only when this much more paint runs along it
+_LINE_EXT_M = 40.0  # the line axis runs on this far beyond both ends of its line
 
 
 class Frame:
@@ -145,7 +146,7 @@ def _line_frame(pieces: list[Candidate], cfg: LanesConfig) -> Frame | None:
             best, length = xy, arc
     if best is None:
         return None
-    ext = np.arange(2.0, 40.0 + 1e-9, 2.0)[:, None]
+    ext = np.arange(2.0, _LINE_EXT_M + 1e-9, 2.0)[:, None]
     head_dir = (best[0] - best[1]) / np.linalg.norm(best[0] - best[1])
     tail_dir = (best[-1] - best[-2]) / np.linalg.norm(best[-1] - best[-2])
     return Frame(np.vstack([best[0] + ext[::-1] * head_dir, best, best[-1] + ext * tail_dir]), cfg.station_step_m)

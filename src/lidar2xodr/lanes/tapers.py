@@ -278,13 +278,22 @@ def _travel_sign(frame: Frame, ego: np.ndarray | None) -> int:
     start): a one-way carriageway's lanes are right lanes along s. The frame's own orientation comes
     from the markings and the local frame's origin, which can lie anywhere (a roadgen corridor
     driven towards its origin was built as the opposite direction's road: 16 m boundaries RMSE).
+    Only where the ego drives on the frame counts: within `_EGO_ON_FRAME_M` of it and along it (its
+    station changes by at least half the distance it moves). Elsewhere a point's foot can still lie
+    inside the frame: on Town04 the ego drove a street 100 m beside a curve's axis first, against
+    the curve's direction, and the curve was built as the opposite carriageway (14.7 m).
     """
     if ego is None or len(ego) < 2:
         return 1
-    s, _, inside = frame.project(ego)
+    s, t, inside = frame.project(ego)
     ds = np.gradient(s)
-    moving = np.flatnonzero(inside & (np.abs(ds) > 1e-3))
+    moved = np.linalg.norm(np.gradient(ego, axis=0), axis=1)
+    on = inside & (np.abs(t) <= _EGO_ON_FRAME_M) & (np.abs(ds) >= 0.5 * moved)
+    moving = np.flatnonzero(on & (np.abs(ds) > 1e-3))
     return 1 if len(moving) == 0 or ds[moving[0]] > 0 else -1
+
+
+_EGO_ON_FRAME_M = 20.0  # the normals' reach (`max_normal_length_m`): a road wider than this is two roads
 
 
 def _type_tapers(model: LaneModel, tapers: list[_Taper], new_id: np.ndarray, travel: int) -> None:
