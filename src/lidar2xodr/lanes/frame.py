@@ -136,7 +136,8 @@ def _line_frame(pieces: list[Candidate], cfg: LanesConfig) -> Frame | None:
     axis tried, where the first frame finds no stretch with two lines a lane apart (the aiMotive
     sample with one middle frame unreadable: the first frame's middles bend by 1.5 m, the dashes of
     the broken line no longer join, and the build ended in exit 2); a drive that builds on the first
-    frame is not changed by it.
+    frame is not changed by it, unless its road explains less than half this line's span
+    (`build._along_longest_line`).
     """
     best, length = None, 0.0
     for c in pieces:
