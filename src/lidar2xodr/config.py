@@ -80,8 +80,9 @@ class ExtractionConfig(_Section):
     odometry_ground_band_m: float = Field(0.15, gt=0, description="ours: road = points this close to the scan's "
                                           "ground plane")
     odometry_ground_range_m: float = Field(40.0, gt=0, description="ours: ... and this close to the vehicle (where "
-                                           "the plane was fitted; simulated 2 km motorways end +0.4..1.0 m high "
-                                           "with 35-40 m, +4..6 m with 30 m, +8..14 m with 45 m: odometry.py)")
+                                           "the plane was fitted; simulated 2 km motorways, seed 1, end +0.4..1.0 m "
+                                           "high with 35-40 m, +4..6 m with 30 m, +8..14 m with 45 m; seeds 2-3 up "
+                                           "to +5.5 m with 40 m: odometry.py)")
     odometry_ground_cell_m: float = Field(2.0, gt=0, description="ours: xy cell of the road map; a cell's plane has "
                                           "the normal of its 3 x 3 neighbourhood")
     odometry_ground_scale_m: float = Field(0.1, gt=0, description="ours: final cut-off of the road fit's Tukey "
