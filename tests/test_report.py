@@ -135,6 +135,17 @@ def test_a_failed_or_missing_reader_is_never_shown_as_passed(tmp_path: Path) -> 
     assert make_verdict("m.xodr", odr, {}, None, [], 1.75, 2.0).status == ABSENT, "not checked is not passed"
 
 
+def test_a_lane_of_a_width_no_lane_has_is_a_problem_of_the_map(tmp_path: Path) -> None:
+    """`check` warns about zero-width, narrow and wide lanes; the verdict lists them and is not a pass."""
+    odr = OpenDriveMap.load(entry_map(tmp_path / "entry.xodr"))
+    wide = "road 1 lane -2: wider than 5.0 m over 87.0 m (s 12.0-99.0, up to 7.00 m): two lanes as one, or a border"
+    check = {**_check(), "lane_widths": {"negative": [], "zero_width": [], "narrow": [], "wide": [{}],
+                                          "warnings": [wide]}}
+    v = make_verdict("m.xodr", odr, check, None, [], 1.75, 2.0)
+    assert [p.text for p in v.problems] == [f"map: {wide}"]
+    assert v.status == WARN
+
+
 def test_metrics_come_most_telling_first_with_the_lane_graph(tmp_path: Path) -> None:
     odr = OpenDriveMap.load(entry_map(tmp_path / "entry.xodr"))
     rows = dict(make_verdict("m.xodr", odr, _check(), METRICS, [], 1.75, 2.0).metrics)

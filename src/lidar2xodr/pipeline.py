@@ -415,6 +415,8 @@ def print_summary(result: BuildResult, console: Console) -> None:
                       "no matched lanes" if lw.get("bias_m") is None else f"{lw['bias_m']:+.3f} / {lw['std_m']:.3f} m")
     for w in result.warnings:
         table.add_row("warning", escape(w))
+    for w in result.check.get("lane_widths", {}).get("warnings", []):
+        table.add_row("warning", escape(f"map: {w}"))
     if result.scenario_path:
         table.add_row("scenario", escape(str(result.scenario_path)))
     if result.report_path:

@@ -377,10 +377,13 @@ def graph_problems(metrics: dict[str, Any] | None) -> list[Problem]:
 
 
 def check_problems(check: dict[str, Any], rows: list[CheckRow]) -> list[str]:
-    """What the checks found wrong, in words: why the map fails them, and each reader that failed."""
+    """What the checks found wrong, in words: why the map fails them, each reader that failed, and the
+    lanes of a width no lane has (`check`'s `lane_widths` warnings: zero-width, narrow, wide)."""
     out = [f"the map fails its checks: {reason}" for reason in check.get("reasons", [])] if check else []
     for row in rows:
         if row.status == FAIL and row.name not in ("ASAM checker", "continuity"):
             first = f": {row.lines[0]}" if row.lines else ""
             out.append(f"{row.name} failed to read the map{first}")
+    if check:
+        out += [f"map: {w}" for w in check.get("lane_widths", {}).get("warnings", [])]
     return out
