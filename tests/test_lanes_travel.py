@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from lidar2xodr.config import LanesConfig
 from lidar2xodr.lanes.frame import Frame
 from lidar2xodr.lanes.tapers import _travel_sign
+
+REACH = LanesConfig().max_normal_length_m
 
 
 def _axis() -> Frame:
@@ -25,8 +28,8 @@ def test_the_direction_is_that_of_the_ego_on_the_axis_not_on_a_street_beside_it(
     """Town04: a street 100 m beside the axis, driven against it, then the road itself, driven along it.
     Every point of the street has its foot inside the axis; only the drive on the road counts."""
     ego = _path(((350.0, 100.0), (50.0, 100.0)), ((50.0, 100.0), (20.0, 0.0)), ((20.0, 0.0), (380.0, 0.0)))
-    assert _travel_sign(_axis(), ego) == 1
-    assert _travel_sign(_axis(), ego[::-1]) == -1
+    assert _travel_sign(_axis(), ego, REACH) == 1
+    assert _travel_sign(_axis(), ego[::-1], REACH) == -1
 
 
 def test_a_crossing_street_does_not_decide_the_direction() -> None:
@@ -34,11 +37,11 @@ def test_a_crossing_street_does_not_decide_the_direction() -> None:
     from the side and driving along it."""
     ego = _path(((200.0, -60.0), (190.0, 60.0)), ((190.0, 60.0), (100.0, 60.0)), ((100.0, 60.0), (100.0, 3.0)),
                 ((100.0, 3.0), (380.0, 3.0)))
-    assert _travel_sign(_axis(), ego) == 1
+    assert _travel_sign(_axis(), ego, REACH) == 1
 
 
 def test_the_direction_of_a_drive_along_the_axis_is_its_own() -> None:
     ego = _path(((10.0, -1.8), (390.0, -1.8)))
-    assert _travel_sign(_axis(), ego) == 1
-    assert _travel_sign(_axis(), ego[::-1]) == -1
-    assert _travel_sign(_axis(), None) == 1
+    assert _travel_sign(_axis(), ego, REACH) == 1
+    assert _travel_sign(_axis(), ego[::-1], REACH) == -1
+    assert _travel_sign(_axis(), None, REACH) == 1

@@ -167,9 +167,9 @@ def _build_on_frame(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lanes
     ego = cloud.trajectory.positions[:, :2] if len(cloud.trajectory) else None
     lam = _lam(cfg.boundary_smoothing_m, step)
     structure = fit = None
-    if _travel_sign(frame, ego) < 0:
+    if _travel_sign(frame, ego, cfg.max_normal_length_m) < 0:
         frame = Frame(frame.xy[::-1], step)
-    travel = _travel_sign(frame, ego)
+    travel = _travel_sign(frame, ego, cfg.max_normal_length_m)
     tapers: list[_Taper] = []
     taper_notes: list[str] = []
     off = np.zeros(len(xyz), dtype=bool)  # points of taper lines found: refitted without them (they bend the edge)

@@ -269,7 +269,7 @@ def _add_tapers(fit: _Fit, structure: _Structure, label: np.ndarray, tapers: lis
         label[taper.points] = taper.row
 
 
-def _travel_sign(frame: Frame, ego: np.ndarray | None) -> int:
+def _travel_sign(frame: Frame, ego: np.ndarray | None, reach_m: float) -> int:
     """+1 when the ego first travels along s on the frame (the kept carriageway is the one it drove
     first), -1 against; +1 without a trajectory.
 
@@ -278,8 +278,9 @@ def _travel_sign(frame: Frame, ego: np.ndarray | None) -> int:
     start): a one-way carriageway's lanes are right lanes along s. The frame's own orientation comes
     from the markings and the local frame's origin, which can lie anywhere (a roadgen corridor
     driven towards its origin was built as the opposite direction's road: 16 m boundaries RMSE).
-    Only where the ego drives on the frame counts: within `_EGO_ON_FRAME_M` of it and along it (its
-    station changes by at least half the distance it moves). Elsewhere a point's foot can still lie
+    Only where the ego drives on the frame counts: within `reach_m` of it (`max_normal_length_m`, the
+    normals' reach: a road wider than that is two roads) and along it (its station changes by at least
+    half the distance it moves). Elsewhere a point's foot can still lie
     inside the frame: on Town04 the ego drove a street 100 m beside a curve's axis first, against
     the curve's direction, and the curve was built as the opposite carriageway (14.7 m).
     """
@@ -288,12 +289,9 @@ def _travel_sign(frame: Frame, ego: np.ndarray | None) -> int:
     s, t, inside = frame.project(ego)
     ds = np.gradient(s)
     moved = np.linalg.norm(np.gradient(ego, axis=0), axis=1)
-    on = inside & (np.abs(t) <= _EGO_ON_FRAME_M) & (np.abs(ds) >= 0.5 * moved)
+    on = inside & (np.abs(t) <= reach_m) & (np.abs(ds) >= 0.5 * moved)
     moving = np.flatnonzero(on & (np.abs(ds) > 1e-3))
     return 1 if len(moving) == 0 or ds[moving[0]] > 0 else -1
-
-
-_EGO_ON_FRAME_M = 20.0  # the normals' reach (`max_normal_length_m`): a road wider than this is two roads
 
 
 def _type_tapers(model: LaneModel, tapers: list[_Taper], new_id: np.ndarray, travel: int) -> None:
