@@ -296,6 +296,39 @@ def common_rmse(new: Path, old: Path, reference: Path, near_m: float = 1.0) -> d
     return {k: (v[0], v[1]) for k, v in out.items()}
 
 
+def common_marks(new: Path, old: Path, reference: Path) -> tuple[float, float, float, float]:
+    """Road-mark agreement (`compare`'s rule 10) of the old and the new map on the reference boundary
+    samples that both maps match, and each map's whole matched length: (old, new, old m, new m).
+
+    A map whose lines lie nearer the truth matches more of the reference's lines, and the added
+    length carries its own marks: its agreement is then an average over other road, like an RMSE
+    over more road (`common_rmse`)."""
+    from lidar2xodr import evaluation as ev
+
+    cfg = Config().evaluation
+    tol = math.radians(cfg.heading_tolerance_deg)
+    ref_map = ev._load(reference)
+    ref = ev.carriageways(ref_map, cfg.sample_step_m)
+    per_map = []
+    for path in (old, new):
+        m = ev._load(path)
+        gen = ev.carriageways(m, cfg.sample_step_m, ev._frame_transform(m, ref_map, path)[0])
+        q = gen.boundary_query
+        if not q.any() or len(ref.boundaries.xy) == 0:
+            per_map.append((np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool), np.zeros(0, dtype=bool),
+                            np.zeros(0)))
+            continue
+        d, v, _ = ev.nearest(ref.boundaries, gen.boundaries.xy[q], gen.boundaries.hdg[q], tol)
+        matched = (d <= cfg.mark_match_m) & (ref.boundary_gap[v] >= cfg.mark_match_m)
+        per_map.append((v, matched, gen.boundary_mark[q] == ref.boundary_mark[v], gen.boundaries.weight[q]))
+    both = np.intersect1d(per_map[0][0][per_map[0][1]], per_map[1][0][per_map[1][1]])
+    out = []
+    for v, matched, agree, w in per_map:
+        sel = matched & np.isin(v, both)
+        out.append(float(np.sum(w[sel & agree]) / np.sum(w[sel])) if np.sum(w[sel]) > 0 else float("nan"))
+    return out[0], out[1], float(np.sum(per_map[0][3][per_map[0][1]])), float(np.sum(per_map[1][3][per_map[1][1]]))
+
+
 def changes(rows: list[dict], before: Path, todo: list[dict], out: Path) -> list[dict]:
     """Per case, the metrics that moved beyond CHANGE_TOL against an earlier sweep's rows (same case ids).
 
@@ -303,7 +336,9 @@ def changes(rows: list[dict], before: Path, todo: list[dict], out: Path) -> list
     maps built (`common_rmse`): it is worse only when it is worse there; otherwise it is listed with both
     numbers as accuracy on the added road, not a regression (the added road still counts in the RMSE
     and in the targets). Two maps that share no road at all (the earlier one built a stretch the new
-    one does not, or a street beside the drive) are different road: the driven share decides."""
+    one does not, or a street beside the drive) are different road: the driven share decides. Likewise
+    a fall of the road-mark agreement where the new map matches more of the reference's lines is
+    measured again on the samples both maps match (`common_marks`)."""
     items = []
     for case, row in zip(todo, rows, strict=True):
         path = before / "rows" / f"{case_id(case)}.json"
@@ -316,7 +351,7 @@ def changes(rows: list[dict], before: Path, todo: list[dict], out: Path) -> list
                 f"built -> {row['error']}" if "error" in row else f"{old['error']} -> built")
         more_road = (old.get("driven") is not None and row.get("driven") is not None
                      and row["driven"] - old["driven"] > CHANGE_TOL["driven"])
-        common = None
+        common = marks = None
         for key, sign in CHANGE_KEYS:
             a, b = old.get(key), row.get(key)
             if a is None or b is None or abs(b - a) <= CHANGE_TOL[key]:
@@ -335,6 +370,14 @@ def changes(rows: list[dict], before: Path, todo: list[dict], out: Path) -> list
                     else:
                         text += f" over more road; on the common stretch {c_old:.3f} -> {c_new:.3f}"
                         worse = not (c_new - c_old <= CHANGE_TOL[key])
+            if worse and key == "road_marks":
+                maps = (before / "cases" / case_id(case) / "map.xodr", out / "cases" / case_id(case) / "map.xodr")
+                if marks is None and all(p.exists() for p in maps):
+                    marks = common_marks(maps[1], maps[0], Path(case["xodr"]))
+                if marks is not None and marks[3] > marks[2] and not math.isnan(marks[0] + marks[1]):
+                    text += (f" over more matched line ({marks[2]:.0f} -> {marks[3]:.0f} m); on the samples both match "
+                             f"{marks[0]:.3f} -> {marks[1]:.3f}")
+                    worse = marks[0] - marks[1] > CHANGE_TOL[key]
             (item["worse"] if worse else item["better"]).append(text)
         if item["worse"] or item["better"]:
             items.append(item)

@@ -115,14 +115,18 @@ def test_changes_against_an_earlier_sweep_list_worse_cases_first(tmp_path: Path)
     assert "3 (2 with a metric worse)" in sweep.format_changes(items)
 
 
-def _straight(path: Path, *pieces: tuple[float, float, float, float]) -> Path:
-    """A one-way road of two 3.5 m lanes along +x, as (x start, length, shift, shift per metre) pieces."""
+def _straight(path: Path, *pieces: tuple[float, float, float, float], marks: list[str] | None = None) -> Path:
+    """A one-way road of two 3.5 m lanes along +x, as (x start, length, shift, shift per metre) pieces;
+    `marks`: the outer road mark of lanes -1 and -2 on each piece, in turn (none: no road marks)."""
+    def mark(i: int, k: int) -> str:
+        return "" if marks is None else f'<roadMark sOffset="0" type="{marks[2 * i + k - 1]}" width="0.15"/>'
+
     roads = "".join(
         f'<road id="{i + 1}" length="{n}" junction="-1" rule="RHT"><planView><geometry s="0" x="{x0}" y="0" hdg="0" '
         f'length="{n}"><line/></geometry></planView><lanes><laneOffset s="0" a="{dt}" b="{slope}" c="0" d="0"/>'
         '<laneSection s="0"><center><lane id="0" type="none" level="false"/></center><right>'
         + "".join(f'<lane id="-{k}" type="driving" level="false"><width sOffset="0" a="3.5" b="0" c="0" d="0"/>'
-                  "</lane>" for k in (1, 2))
+                  f"{mark(i, k)}</lane>" for k in (1, 2))
         + "</right></laneSection></lanes></road>"
         for i, (x0, n, dt, slope) in enumerate(pieces)
     )
@@ -152,6 +156,28 @@ def test_more_road_is_judged_on_the_common_stretch(tmp_path: Path, common_shift:
     listed = item["worse"] if worse else item["better"]
     assert any(x.startswith("boundaries_rmse 0.000 -> 0.070 over more road; on the common stretch 0.000 -> ")
                for x in listed)
+
+
+@pytest.mark.parametrize(("common_mark", "worse"), [("broken", False), ("solid", True)])
+def test_road_marks_over_more_matched_line_are_judged_on_the_samples_both_match(
+        tmp_path: Path, common_mark: str, worse: bool) -> None:
+    """The new map's second half lies on the truth (the earlier one's lay 1.5 m off) with a wrongly typed
+    line: its agreement falls over the added length, and is worse only if it falls where both match."""
+    case = {"map": "m", "seed": 1, "length_m": 300.0,
+            "xodr": str(_straight(tmp_path / "ref.xodr", (0, 300, 0, 0), marks=["broken", "solid"]))}
+    cid = sweep.case_id(case)
+    _straight(tmp_path / "old" / "cases" / cid / "map.xodr", (0, 150, 0, 0), (150, 150, 1.5, 0),
+              marks=["broken", "solid", "broken", "solid"])
+    _straight(tmp_path / "new" / "cases" / cid / "map.xodr", (0, 150, 0, 0), (150, 150, 0, 0),
+              marks=[common_mark, "solid", "solid", "solid"])
+    old_marks, new_marks, old_m, new_m = sweep.common_marks(tmp_path / "new" / "cases" / cid / "map.xodr",
+                                                            tmp_path / "old" / "cases" / cid / "map.xodr",
+                                                            Path(case["xodr"]))
+    assert new_m > old_m and old_marks == pytest.approx(1.0)
+    sweep._store(tmp_path / "old" / "rows" / f"{cid}.json", {"commit": "x"}, _row("m", road_marks=1.0))
+    (item,) = sweep.changes([_row("m", road_marks=0.8)], tmp_path / "old", [case], tmp_path / "new")
+    listed = item["worse"] if worse else item["better"]
+    assert len(listed) == 1 and listed[0].startswith("road_marks 1.000 -> 0.800 over more matched line")
 
 
 def test_maps_of_different_road_are_judged_by_the_driven_share(tmp_path: Path) -> None:
