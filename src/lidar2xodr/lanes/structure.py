@@ -360,7 +360,10 @@ def _open_beside_edge(t: np.ndarray, on: np.ndarray, b: int, start: int, inward:
     spacings cannot tell which of p and e moves: the recentred frame keeps their middle, so both swing
     by half the taper. Then the world decides (`frame`): p must run straighter than e, within a fifth
     of e's deviation from its own best quadratic over the walk and a walk's length on each side
-    (`_bend`; corridor_017 s1: the through line 0.01 m, the entry lane's edge 0.9 m)."""
+    (`_bend`; corridor_017 s1: the through line 0.01 m, the entry lane's edge 0.9 m). The walk follows
+    p and e where they are fitted, not only where the carriageway choice kept them: before b starts, the
+    two lanes between p and e are one space too wide for a lane, so that choice keeps one of the two
+    lines per station (corridor_007 s2: each alone on alternating stretches, the walk stopped at once)."""
     rows = [j for j in range(len(t)) if j != b and on[j, start]]
     tb = t[b, start]
     found: list[tuple[int, int, float, float, list[int]]] = []
@@ -379,7 +382,7 @@ def _open_beside_edge(t: np.ndarray, on: np.ndarray, b: int, start: int, inward:
         closed = False
         for i in range(1, reach + 1):
             k = start - inward * i
-            if not 0 <= k < t.shape[1] or on[b, k] or not (on[e, k] and on[p, k]):
+            if not 0 <= k < t.shape[1] or on[b, k] or not (np.isfinite(t[e, k]) and np.isfinite(t[p, k])):
                 break
             width = d * (t[e, k] - t[p, k]) - g_in
             if width > previous + 0.1 or (i == 1 and abs(width - g_out) > 0.5):
