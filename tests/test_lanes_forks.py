@@ -166,6 +166,17 @@ def test_with_no_third_line_the_world_tells_which_line_moved() -> None:
     assert not _open_beside_edge(t, on, 2, start, 1, 120, 2.5, frame)
 
 
+def test_the_walk_follows_lines_the_carriageway_choice_dropped_before_the_new_line() -> None:
+    """corridor_007 s2: before the exit lane's line starts, the edge and the inner line are two lanes
+    apart, too wide for one, and the carriageway choice kept one of them per station; their fitted
+    courses are still there, and the walk follows them."""
+    t, on = _edge_taper()
+    on[1, 150:160] = False
+    on[0, 140:150] = False
+    assert _open_beside_edge(t, on, 2, 160, 1, 120, 2.5)
+    assert on[2, 101:160].all() and np.allclose(t[2, 101:160], -3.5)
+
+
 def test_a_line_along_a_curve_does_not_bend_a_taper_line_does() -> None:
     """`_bend`: a line 3.5 m beside an axis on a 700 m radius stays within 5 cm of a quadratic
     over 300 m; an edge that comes in by a lane between two parallel stretches deviates by decimetres."""
