@@ -7,8 +7,9 @@ import numpy as np
 
 from lidar2xodr.config import LanesConfig
 from lidar2xodr.data import Boundary, LaneModel, LaneSection
+from lidar2xodr.lanes.frame import Frame
 from lidar2xodr.lanes.labels import _fork_curves
-from lidar2xodr.lanes.structure import _open_beside_edge
+from lidar2xodr.lanes.structure import _bend, _open_beside_edge
 from lidar2xodr.lanes.tapers import _type_by_width
 from lidar2xodr.lanes.tracks import _bridge_gaps, _Lines
 
@@ -128,6 +129,65 @@ def test_a_line_painted_only_at_full_width_is_carried_back_to_where_the_edge_mee
     moving_inner[0] = -3.5 + np.clip((k - 100) / 60.0, 0.0, 1.0) * 3.5  # a 2+1 road's centre line moving across
     moving_inner[1] = -7.0  # the edge stays
     assert not _open_beside_edge(moving_inner, moving_on, 2, 160, 1, 120, 2.5), "the edge stayed: nothing opened"
+
+
+def _recentred(inner: np.ndarray, edge: np.ndarray, line: np.ndarray) -> tuple[np.ndarray, np.ndarray, Frame]:
+    """Three lines given by their world y at x = 0..M-1 (NaN: absent), measured from the frame the
+    lanes stage recentres on the middle of the outermost lines (inner and edge)."""
+    x = np.arange(M, dtype=float)
+    frame = Frame(np.column_stack([x, 0.5 * (inner + edge)]), 1.0)
+    rows = []
+    for y in (inner, edge, line):
+        there = np.isfinite(y)
+        fine = np.arange(x[there][0], x[there][-1], 0.1)
+        s, t, _ = frame.project(np.column_stack([fine, np.interp(fine, x[there], y[there])]))
+        rows.append(np.where((frame.s >= s[0]) & (frame.s <= s[-1]), np.interp(frame.s, s, t), np.nan))
+    t = np.vstack(rows)
+    return t, np.isfinite(t), frame
+
+
+def test_with_no_third_line_the_world_tells_which_line_moved() -> None:
+    """corridor_017 s1: a two-lane carriageway whose far edge is not seen, so only the lane line p, the
+    edge e and the new lane's line b are there. The frame keeps the middle of p and e, so both swing by
+    half the taper and their spacings cannot tell which one moved: p's straight world course does."""
+    k = np.arange(M, dtype=float)
+    edge = -3.5 - np.clip((k - 100) / 60.0, 0.0, 1.0) * 3.5
+    t, on, frame = _recentred(np.zeros(M), edge, np.where(k >= 160, -3.5, np.nan))
+    start = int(np.flatnonzero(on[2])[0])
+    assert abs(t[0, 50] - t[0, 200]) > 1.0, "the inner line swings in the frame"
+    blind_t, blind_on = t.copy(), on.copy()
+    assert not _open_beside_edge(blind_t, blind_on, 2, start, 1, 120, 2.5), "without the frame: either may have moved"
+    assert _open_beside_edge(t, on, 2, start, 1, 120, 2.5, frame)
+    world = frame.point(np.where(on[2], t[2], 0.0))[:, 1]
+    assert on[2, 110:start].all() and np.allclose(world[110:start], -3.5, atol=0.05), "at its offset to the inner line"
+    assert not on[2, :95].any(), "no further than where the edge meets it"
+    wiggle = 1.0 * np.sin(np.clip((k - 100) / 60.0, 0.0, 1.0) * np.pi)  # p bends too: the world cannot tell
+    t, on, frame = _recentred(wiggle, edge + wiggle, np.where(k >= 160, -3.5, np.nan))
+    assert not _open_beside_edge(t, on, 2, start, 1, 120, 2.5, frame)
+
+
+def test_the_walk_follows_lines_the_carriageway_choice_dropped_before_the_new_line() -> None:
+    """corridor_007 s2: before the exit lane's line starts, the edge and the inner line are two lanes
+    apart, too wide for one, and the carriageway choice kept one of them per station; their fitted
+    courses are still there, and the walk follows them."""
+    t, on = _edge_taper()
+    on[1, 150:160] = False
+    on[0, 140:150] = False
+    assert _open_beside_edge(t, on, 2, 160, 1, 120, 2.5)
+    assert on[2, 101:160].all() and np.allclose(t[2, 101:160], -3.5)
+
+
+def test_a_line_along_a_curve_does_not_bend_a_taper_line_does() -> None:
+    """`_bend`: a line 3.5 m beside an axis on a 700 m radius stays within 5 cm of a quadratic
+    over 300 m; an edge that comes in by a lane between two parallel stretches deviates by decimetres."""
+    a = np.linspace(0.0, 300.0 / 700.0, M)
+    frame = Frame(700.0 * np.column_stack([np.sin(a), 1.0 - np.cos(a)]), 1.0)
+    n = len(frame.s)
+    k = np.arange(n, dtype=float)
+    t = np.vstack([np.full(n, -3.5), -3.5 - np.clip((k - 100) / 60.0, 0.0, 1.0) * 3.5])
+    on = np.isfinite(t)
+    assert _bend(frame, t, on, 0, np.arange(n)) < 0.05
+    assert _bend(frame, t, on, 1, np.arange(n)) > 0.5
 
 
 def test_a_line_found_only_once_its_lane_is_nearly_full_is_carried_along_the_inner_line() -> None:

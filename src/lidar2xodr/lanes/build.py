@@ -201,7 +201,7 @@ def _build_on_frame(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lanes
                 [_mark_pattern(s_pt[(use == b) & inside], cfg)[0] == "solid" for b in active], dtype=bool
             )
             seen = _observed(k_pt[inside], t_pt[inside], ~crossing[inside], len(frame.s))
-            sub = _lane_structure(fit.t, fit.support[active], solid, t_ego, step, w_lane, cfg, seen)
+            sub = _lane_structure(fit.t, fit.support[active], solid, t_ego, step, w_lane, cfg, seen, frame)
             structure = _Structure(sub.on.copy(), sub.t.copy(), active, n_sl)
             if not np.any(structure.on.sum(axis=0) >= 2):
                 raise _NoRoad

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lidar2xodr.config import LanesConfig
+from lidar2xodr.lanes.frame import Frame
 from lidar2xodr.lanes.smoothing import _groups, _runs
 from lidar2xodr.lanes.tracks import _ABSENT_RUN, _Observed, _strays
 
@@ -38,11 +39,13 @@ def _lane_structure(
     w_lane: float,
     cfg: LanesConfig,
     seen: _Observed | None = None,
+    frame: Frame | None = None,
 ) -> _Structure:
     """Which boundaries form the carriageway at each station, with tapers followed to zero width.
 
     `seen` (where marking points were measured, see `_Observed`) keeps lines from being carried
-    towards the drive's ends where they were seen to be absent.
+    towards the drive's ends where they were seen to be absent; `frame` (the stations' axis) lets
+    `_open_beside_edge` tell in the world which of two lines moves.
 
     Two rounds: the extensions found in the first (tapers, lines carried to the drive's ends) are
     measured lines in the second, which decides presence again from scratch, so a line dropped
@@ -59,7 +62,7 @@ def _lane_structure(
             on = _choose_carriageway(t, on, t_ego, solid, support, cfg)
             on, _ = _check_adjacency(t, on, rank, step, cfg)
             on = _clean_runs(on, min_run)
-        t_ext, on = _follow_tapers(t, on, step, w_lane, cfg, seen, solid)
+        t_ext, on = _follow_tapers(t, on, step, w_lane, cfg, seen, solid, frame)
         t = np.where(on, t_ext, t)
     return _Structure(on, np.where(on, t, np.nan))
 
@@ -248,7 +251,7 @@ def _clean_runs(on: np.ndarray, min_run: int) -> np.ndarray:
 
 def _follow_tapers(
     t: np.ndarray, on: np.ndarray, step: float, w_lane: float, cfg: LanesConfig, seen: _Observed | None = None,
-    solid: np.ndarray | None = None,
+    solid: np.ndarray | None = None, frame: Frame | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Extend boundaries that appear or end back (forward) to where their new lane has zero width."""
     t = t.copy()
@@ -270,7 +273,8 @@ def _follow_tapers(
                     if not _extend(t, on, b, start, inward, probe, reach, w_lane) \
                             and not (e - s >= min_run
                                      and _open_beside_edge(t, on, b, start, inward, reach,
-                                                           min(cfg.narrow_lane_width_m, cfg.min_lane_width_m))):
+                                                           min(cfg.narrow_lane_width_m, cfg.min_lane_width_m),
+                                                           frame)):
                         end = road[0] if inward == 1 else road[-1]
                         if abs(start - end) <= reach:
                             _hold_to(t, on, b, start, end, seen if solid is not None and solid[b] else None)
@@ -334,7 +338,7 @@ def _moves(t: np.ndarray, on: np.ndarray, j: int, b: int, start: int, others: li
 
 
 def _open_beside_edge(t: np.ndarray, on: np.ndarray, b: int, start: int, inward: int, reach: int,
-                      min_width: float) -> bool:
+                      min_width: float, frame: Frame | None = None) -> bool:
     """Carry line b back (forward) at its offset to its inner neighbour p while the lane beyond it opens
     (closes) along the carriageway's edge e (`_follow_tapers` asks only for a line kept over at least
     `min_section_length_m`: a line seen for a few metres at a drive's end shows no lane).
@@ -351,7 +355,15 @@ def _open_beside_edge(t: np.ndarray, on: np.ndarray, b: int, start: int, inward:
     without a jump to b's spacing within `reach` stations (the taper's far end, where b meets e),
     while p keeps its spacing to every other line seen there (it is e that moves, not p: on a 2+1
     road the centre line moves across while the edges stay, and a new lane line beside the edge is
-    not carried along the centre line); and only when this holds on one side of b."""
+    not carried along the centre line); and only when this holds on one side of b. Where no other line
+    is seen along the walk (a two-lane carriageway whose far edge is not painted or not seen), the
+    spacings cannot tell which of p and e moves: the recentred frame keeps their middle, so both swing
+    by half the taper. Then the world decides (`frame`): p must run straighter than e, within a fifth
+    of e's deviation from its own best quadratic over the walk and a walk's length on each side
+    (`_bend`; corridor_017 s1: the through line 0.01 m, the entry lane's edge 0.9 m). The walk follows
+    p and e where they are fitted, not only where the carriageway choice kept them: before b starts, the
+    two lanes between p and e are one space too wide for a lane, so that choice keeps one of the two
+    lines per station (corridor_007 s2: each alone on alternating stretches, the walk stopped at once)."""
     rows = [j for j in range(len(t)) if j != b and on[j, start]]
     tb = t[b, start]
     found: list[tuple[int, int, float, float, list[int]]] = []
@@ -370,7 +382,7 @@ def _open_beside_edge(t: np.ndarray, on: np.ndarray, b: int, start: int, inward:
         closed = False
         for i in range(1, reach + 1):
             k = start - inward * i
-            if not 0 <= k < t.shape[1] or on[b, k] or not (on[e, k] and on[p, k]):
+            if not 0 <= k < t.shape[1] or on[b, k] or not (np.isfinite(t[e, k]) and np.isfinite(t[p, k])):
                 break
             width = d * (t[e, k] - t[p, k]) - g_in
             if width > previous + 0.1 or (i == 1 and abs(width - g_out) > 0.5):
@@ -386,6 +398,12 @@ def _open_beside_edge(t: np.ndarray, on: np.ndarray, b: int, start: int, inward:
         moved = [float(np.max(np.abs((t[p, walked] - t[q, walked]) - (t[p, start] - t[q, start])))) for q in others]
         if others and max(moved) < 0.2 * g_out:
             found.append((e, p, d, g_in, walked))
+        elif not others and frame is not None:
+            n = len(walked)
+            lo, hi = sorted((start + inward * n, walked[-1] - inward * n))
+            around = np.arange(max(lo, 0), min(hi, t.shape[1] - 1) + 1)
+            if _bend(frame, t, on, p, around) < 0.2 * _bend(frame, t, on, e, around):
+                found.append((e, p, d, g_in, walked))
     if len(found) != 1:
         return False
     e, p, d, g_in, walked = found[0]
@@ -394,6 +412,21 @@ def _open_beside_edge(t: np.ndarray, on: np.ndarray, b: int, start: int, inward:
     t[b, walked[-1]] = t[e, walked[-1]]
     on[b, walked] = True
     return True
+
+
+def _bend(frame: Frame, t: np.ndarray, on: np.ndarray, j: int, ks: np.ndarray) -> float:
+    """Largest deviation of line j's world course at stations `ks` (where it is present) from its best
+    quadratic: a line along the road (on a curve too) stays within its noise, a line that comes in
+    between two parallel stretches does not. Infinite when the line is present at fewer than 10 stations."""
+    ks = ks[on[j, ks]]
+    if len(ks) < 10:
+        return float("inf")
+    xy = frame.xy[ks] + frame.normal[ks] * t[j, ks][:, None]
+    chord = xy[-1] - xy[0]
+    u = chord / max(float(np.linalg.norm(chord)), 1e-9)
+    x = (xy - xy[0]) @ u
+    y = (xy - xy[0]) @ np.array([-u[1], u[0]])
+    return float(np.max(np.abs(y - np.polyval(np.polyfit(x, y, 2), x))))
 
 
 def _extend(
