@@ -39,6 +39,7 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -263,6 +264,20 @@ LIKE_FOR_LIKE = ("boundaries_rmse", "centerline_rmse")
 """RMSEs that are also compared on the common stretch where a case's driven share rose (`common_rmse`)."""
 
 
+def _sampled(reference: Path, *paths: Path) -> tuple[Any, float, Any, list[Any]]:
+    """`compare`'s settings, heading tolerance [rad], and the sampled carriageways of the reference and of
+    each map (in the reference's frame)."""
+    from lidar2xodr import evaluation as ev
+
+    cfg = Config().evaluation
+    ref_map = ev._load(reference)
+    maps = []
+    for path in paths:
+        m = ev._load(path)
+        maps.append(ev.carriageways(m, cfg.sample_step_m, ev._frame_transform(m, ref_map, path)[0]))
+    return cfg, math.radians(cfg.heading_tolerance_deg), ev.carriageways(ref_map, cfg.sample_step_m), maps
+
+
 def common_rmse(new: Path, old: Path, reference: Path, near_m: float = 1.0) -> dict[str, tuple[float, float]]:
     """Boundaries and centre RMSE of the old and the new map on the road both built.
 
@@ -272,14 +287,7 @@ def common_rmse(new: Path, old: Path, reference: Path, near_m: float = 1.0) -> d
     """
     from lidar2xodr import evaluation as ev
 
-    cfg = Config().evaluation
-    tol = math.radians(cfg.heading_tolerance_deg)
-    ref_map = ev._load(reference)
-    ref = ev.carriageways(ref_map, cfg.sample_step_m)
-    maps = []
-    for path in (old, new):
-        m = ev._load(path)
-        maps.append(ev.carriageways(m, cfg.sample_step_m, ev._frame_transform(m, ref_map, path)[0]))
+    cfg, tol, ref, maps = _sampled(reference, old, new)
     out: dict[str, list[float]] = {"boundaries_rmse": [], "centerline_rmse": []}
     for a, b in ((maps[0], maps[1]), (maps[1], maps[0])):
         for key, lines_a, lines_b, ref_lines, w in (
@@ -305,14 +313,9 @@ def common_marks(new: Path, old: Path, reference: Path) -> tuple[float, float, f
     over more road (`common_rmse`)."""
     from lidar2xodr import evaluation as ev
 
-    cfg = Config().evaluation
-    tol = math.radians(cfg.heading_tolerance_deg)
-    ref_map = ev._load(reference)
-    ref = ev.carriageways(ref_map, cfg.sample_step_m)
+    cfg, tol, ref, maps = _sampled(reference, old, new)
     per_map = []
-    for path in (old, new):
-        m = ev._load(path)
-        gen = ev.carriageways(m, cfg.sample_step_m, ev._frame_transform(m, ref_map, path)[0])
+    for gen in maps:
         q = gen.boundary_query
         if not q.any() or len(ref.boundaries.xy) == 0:
             per_map.append((np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool), np.zeros(0, dtype=bool),
