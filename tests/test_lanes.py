@@ -741,6 +741,66 @@ def test_a_broken_line_is_fitted_from_its_first_dash_where_the_frame_runs_at_an_
     assert np.max(np.abs(curve[broken] - (-1.5 + drift(broken)))) < 0.05
 
 
+def test_a_lane_shift_of_the_whole_road_is_followed_by_every_line_and_one_line_leaving_is_not() -> None:
+    """A lane shift (1.6 m out and back over 70 m, as at roadgen's interchanges and at road works)
+    moves every line alike (here three broken lines). Each line's smoothing drew it straight through,
+    dropping every dash in the shift as a blob (corridor 7 s1: boundaries 0.224 m). The lines' common
+    shift, fitted again with `shift_smoothing_m`, is followed; one line that leaves the others alone
+    (a ramp's paint) is not a shift of the road, and the lines are fitted as before."""
+    from lidar2xodr.lanes.smoothing import _lam
+    from lidar2xodr.lanes.tracks import _common_shift, _fit_boundaries
+
+    rng = np.random.default_rng(3)
+    m = 400
+    s = np.arange(m)
+    bump = np.where((s >= 150) & (s < 185), 0.8 * (1 - np.cos(np.pi * (s - 150) / 35)), 0.0)
+    bump = np.where((s >= 185) & (s < 220), 0.8 * (1 + np.cos(np.pi * (s - 185) / 35)), bump)
+    lines = [np.concatenate([np.repeat(np.arange(a, a + 6), 5) for a in range(p, m - 6, 18)]) for p in (0, 6, 12)]
+    k = np.concatenate(lines)
+    label = np.repeat([0, 1, 2], [len(x) for x in lines])
+    base = np.array([3.5, 0.0, -3.5])[label] + rng.normal(0, 0.03, len(k))
+    stiff, shift = _lam(LCFG.boundary_smoothing_m, 1.0), _lam(LCFG.shift_smoothing_m, 1.0)
+    inside = np.ones(len(k), dtype=bool)
+
+    def fit(t: np.ndarray, lam_shift: float | None) -> np.ndarray:
+        return _fit_boundaries(k, t, label, inside, 3, m, stiff, 20, 0.3, lam_shift=lam_shift).dense(np.arange(3))
+
+    moved = base + bump[k]
+    straight = fit(moved, None)
+    on = np.flatnonzero(np.isfinite(straight[1]))
+    assert np.abs(straight[1, on] - bump[on]).max() > 1.0, "without: drawn straight through"
+    curves = fit(moved, shift)
+    for row, offset in enumerate((3.5, 0.0, -3.5)):
+        fin = np.flatnonzero(np.isfinite(curves[row]))
+        err = curves[row, fin] - offset - bump[fin]
+        assert np.abs(err).max() < 0.25 and np.sqrt(np.mean(err**2)) < 0.05, row
+    leaving = base + np.where(label == 2, bump[k], 0.0)
+    once = _fit_boundaries(k, leaving, label, inside, 3, m, stiff, 20, 0.3)
+    assert _common_shift(once, k, leaving, label, inside, shift) is None
+    assert np.array_equal(fit(leaving, shift), fit(leaving, None), equal_nan=True)
+
+
+def test_double_lines_are_no_lane_shift() -> None:
+    """Three double lines (two modes 0.8 m apart; 0.6 m on straight_500m_roadmarks): a block's median of a
+    line's points sits on either mode, off the curve, on every line at once, and read as a shift
+    of the road it bent every line (0.3 m there). A block whose points form two modes within a double
+    line's spacing counts at their midpoint, as the fold takes it."""
+    from lidar2xodr.lanes.smoothing import _lam
+    from lidar2xodr.lanes.tracks import _common_shift, _fit_boundaries
+
+    rng = np.random.default_rng(4)
+    m = 300
+    k = np.tile(np.repeat(np.arange(m), 6), 3)
+    label = np.repeat([0, 1, 2], 6 * m)
+    upper = (rng.uniform(size=len(k)) < np.where((k // 10) % 2 == 0, 0.7, 0.3))  # the modes' shares alternate
+    t = np.array([3.5, 0.0, -3.5])[label] + np.where(upper, 0.4, -0.4) + rng.normal(0, 0.02, len(k))
+    inside = np.ones(len(k), dtype=bool)
+    lines = _fit_boundaries(k, t, label, inside, 3, m, _lam(LCFG.boundary_smoothing_m, 1.0), 20, 0.3)
+    shift = _lam(LCFG.shift_smoothing_m, 1.0)
+    assert _common_shift(lines, k, t, label, inside, shift, LCFG.double_line_max_spacing_m) is None
+    assert _common_shift(lines, k, t, label, inside, shift, 0.0) is not None, "median of the points: a shift"
+
+
 def test_a_road_of_narrow_lanes_is_built_with_a_warning_not_refused() -> None:
     """Three 2 m lanes (a catalogue of marks, a test track): no two lines lie a motorway lane apart, so
     the lane model alone refuses; the drive's road is built once more with lanes from

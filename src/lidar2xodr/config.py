@@ -248,6 +248,9 @@ class LanesConfig(_Section):
                                                   "line spans three such blocks or more")
     boundary_smoothing_m: float = Field(40.0, gt=0, description="ours: shortest wavelength kept in a boundary's t(s) "
                                                     "(robust Whittaker smoother)")
+    shift_smoothing_m: float = Field(12.0, ge=0, description="ours: shortest wavelength kept in the road's "
+                                     "common lateral shift (a lane shift moves every line alike, faster than "
+                                     "boundary_smoothing_m follows); 0 turns this off")
     reference_smoothing_m: float = Field(60.0, gt=0, description="ours: shortest wavelength kept in the reference line")
     stable_lane_slope: float = Field(0.02, gt=0, le=1, description="ours: a lane is stable where its width changes "
                                                        "less than this per metre; every lane needs a stable stretch "

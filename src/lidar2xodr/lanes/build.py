@@ -166,6 +166,7 @@ def _build_on_frame(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lanes
     n_sl = int(superline.max()) + 1
     ego = cloud.trajectory.positions[:, :2] if len(cloud.trajectory) else None
     lam = _lam(cfg.boundary_smoothing_m, step)
+    lam_shift = _lam(cfg.shift_smoothing_m, step) if cfg.shift_smoothing_m > 0 else None
     structure = fit = None
     if _travel_sign(frame, ego, cfg.max_normal_length_m) < 0:
         frame = Frame(frame.xy[::-1], step)
@@ -181,7 +182,7 @@ def _build_on_frame(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lanes
             use = np.where(off, -1, label)
             fit = structure = None  # the last pass's arrays are freed before the next are made
             lines = _fit_boundaries(k_pt, t_pt, use, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)),
-                                    cfg.same_line_tolerance_m, double, cfg.end_dash_drift)
+                                    cfg.same_line_tolerance_m, double, cfg.end_dash_drift, lam_shift)
             root = _joins(lines, int(round(cfg.line_join_gap_m / step)), cfg.same_line_tolerance_m,
                           int(round(10.0 / step)))
             if np.any(root != np.arange(n_sl)):
@@ -189,7 +190,7 @@ def _build_on_frame(cloud: MarkingCloud, candidates: list[Candidate], cfg: Lanes
                 use = np.where(off, -1, label)
                 superline = root[superline]
                 lines = _fit_boundaries(k_pt, t_pt, use, inside, n_sl, len(frame.s), lam, int(round(20.0 / step)),
-                                        cfg.same_line_tolerance_m, double, cfg.end_dash_drift)
+                                        cfg.same_line_tolerance_m, double, cfg.end_dash_drift, lam_shift)
             crossing = _crossing_points(lines, use, k_pt, t_pt, cfg.assign_distance_m)
             counts = lines.finite_counts()
             short = counts * step < cfg.min_section_length_m

@@ -8,13 +8,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lidar2xodr.lanes.smoothing import _groups, _runs, _tukey_fit, _whittaker_points
+from lidar2xodr.lanes.smoothing import _groups, _runs, _tukey_fit, _whittaker, _whittaker_points
 
 _ABSENT_RUN = 20  # stations (m) a line must be seen to be absent before it is no longer carried
 _ALONG_SLOPE = 0.1  # lines joined across a gap run along the road there (within ~6 deg of the frame)
 _DOUBLE_SPACING_SPREAD_M = 0.1  # a double line's two lines keep their spacing within this over its blocks
 
 
+_SHIFT_BLOCK = 10  # stations per block of the lines' common shift (half a dash period: each dash counts)
+_SHIFT_MIN_LINE = 60  # stations a line is fitted over to tell a shift of the road (short pieces are clutter)
+_SHIFT_MIN_M = 0.3  # a line this far off its curve in a block is off it
+_SHIFT_PAD = 2  # blocks either side of a shift smoothed with it, back to 0
+_SHIFT_ROUNDS = 3  # the first fits follow a shift in part: what is left is found again on the refits
 _WINDOW_PAD = 2 * _ABSENT_RUN + 90  # stations around a line's points its fit looks at (end pieces: 2 * _ABSENT_RUN)
 
 
@@ -316,6 +321,118 @@ class _Lines:
 
 
 def _fit_boundaries(
+    k: np.ndarray,
+    t: np.ndarray,
+    label: np.ndarray,
+    inside: np.ndarray,
+    n_sl: int,
+    m: int,
+    lam: float,
+    gap: int,
+    parallel_m: float,
+    double: tuple[float, int] = (0.0, 1),
+    end_dash_drift: bool = False,
+    lam_shift: float | None = None,
+) -> _Lines:
+    """Every labelled line's t(s) (`_fit_lines_once`); with `lam_shift`, where the road as a whole
+    moves across the frame faster than a line's smoothing follows (`_common_shift`), every line is
+    fitted again to its offsets less that shift, and the shift added back."""
+    lines = _fit_lines_once(k, t, label, inside, n_sl, m, lam, gap, parallel_m, double, end_dash_drift)
+    if lam_shift is None:
+        return lines
+    shift = np.zeros(m)
+    for _ in range(_SHIFT_ROUNDS):
+        more = _common_shift(lines, k, t - shift[k], label, inside, lam_shift, double[0])
+        if more is None:
+            break
+        shift = shift + more
+        lines = _fit_lines_once(k, t - shift[k], label, inside, n_sl, m, lam, gap, parallel_m, double,
+                                end_dash_drift)
+    if not shift.any():
+        return lines
+    for b in range(len(lines.t)):
+        lines.t[b] = lines.t[b] + shift[lines.lo[b] : lines.lo[b] + len(lines.t[b])]
+    return lines
+
+
+def _common_shift(lines: _Lines, k: np.ndarray, t: np.ndarray, label: np.ndarray, inside: np.ndarray,
+                  lam_shift: float, max_double: float = 0.0) -> np.ndarray | None:
+    """The road's lateral shift across the frame where the lines' own fits cannot follow it, or None.
+
+    A lane shift (road works; a carriageway moved over at an interchange: 1-3 m across 30-60 m) moves
+    every line alike; each line's smoothing (`boundary_smoothing_m`) draws it straight through, and
+    the dashes in the shift, each off the curve, are dropped one by one as blobs. Per block of
+    `_SHIFT_BLOCK` stations each long line (fitted over `_SHIFT_MIN_LINE` stations or more) with 3
+    points or more there gives the median offset of its points from its curve (on a double line, whose
+    curve runs between its two lines, a block holds one of them or both: where its points over the
+    block and `_SHIFT_PAD` blocks each side form two modes within `max_double`, the offset is taken
+    from the nearer mode to their midpoint, as the fold takes it); where two or more lines
+    do, two thirds of them lie off by more than `_SHIFT_MIN_M` on one side and none that far on the
+    other, the block's shift is their median (else 0: one line leaving the others is a ramp or a
+    taper, lines moving apart a lane opening, not the road moving). A dense solid line's fit follows
+    a shift in part, so it is the broken lines, whose dashes are dropped, that show it most.
+    Shifted blocks (with `_SHIFT_PAD` blocks either side) are smoothed with `lam_shift`; the shift is
+    exactly 0 elsewhere, so lines away from it are fitted as before."""
+    starts, ends = lines.spans()
+    long_line = (ends - starts + 1) >= _SHIFT_MIN_LINE
+    use = (label >= 0) & inside
+    use[use] = long_line[label[use]]
+    if not use.any():
+        return None
+    lab, kk = label[use], k[use]
+    r = t[use] - lines.value_at(lab, kk)
+    ok = np.isfinite(r)
+    lab, kk, r = lab[ok], kk[ok], r[ok]
+    n_blk = int(lines.m // _SHIFT_BLOCK) + 1
+    key = lab.astype(np.int64) * n_blk + kk // _SHIFT_BLOCK
+    order = np.lexsort((r, key))
+    key_s, r_s = key[order], r[order]
+    uniq, first, count = np.unique(key_s, return_index=True, return_counts=True)
+    enough = count >= 3
+    med = r_s[first[enough] + count[enough] // 2]
+    if max_double > 0.0:
+        for i, g in enumerate(uniq[enough]):
+            own = g - g % n_blk  # the line's first key: the window stays on its own points
+            lo, hi = np.searchsorted(key_s, [max(g - _SHIFT_PAD, own), min(g + _SHIFT_PAD + 1, own + n_blk)])
+            modes = _two_modes(r_s[lo:hi])
+            if modes is not None and modes[1] - modes[0] <= max_double:
+                near = modes[1] if abs(med[i] - modes[1]) < abs(med[i] - modes[0]) else modes[0]
+                med[i] += 0.5 * (modes[0] + modes[1]) - near
+    g_blk = (uniq[enough] % n_blk).astype(np.int64)
+    by_blk = np.argsort(g_blk, kind="stable")
+    g_blk, med = g_blk[by_blk], med[by_blk]
+    value = np.zeros(n_blk)
+    known = np.zeros(n_blk, dtype=bool)
+    shifted = np.zeros(n_blk, dtype=bool)
+    b_ids, b_first, b_count = np.unique(g_blk, return_index=True, return_counts=True)
+    for bid, f, c in zip(b_ids, b_first, b_count, strict=True):
+        if c < 2:
+            continue
+        v = med[f : f + c]
+        known[bid] = True
+        for sign in (1.0, -1.0):
+            if 3 * np.count_nonzero(sign * v > _SHIFT_MIN_M) >= 2 * c and not np.any(sign * v < -_SHIFT_MIN_M):
+                value[bid] = float(np.median(v))
+                shifted[bid] = True
+    if not shifted.any():
+        return None
+    shift = np.zeros(lines.m)
+    for a, b in _runs(shifted):
+        a, b = max(a - _SHIFT_PAD, 0), min(b + _SHIFT_PAD, n_blk)
+        lo, hi = a * _SHIFT_BLOCK, min(b * _SHIFT_BLOCK, lines.m)
+        if hi - lo < 4:
+            continue
+        kb = np.flatnonzero(known[a:b]) + a
+        centre = np.minimum(kb * _SHIFT_BLOCK + _SHIFT_BLOCK // 2, hi - 1) - lo
+        y = np.zeros(hi - lo)
+        w = np.zeros(hi - lo)
+        y[centre], w[centre] = value[kb], 1.0
+        y[[0, -1]], w[[0, -1]] = 0.0, 1.0  # the shift starts and ends at 0
+        shift[lo:hi] = _whittaker(y, w, lam_shift)
+    return shift
+
+
+def _fit_lines_once(
     k: np.ndarray,
     t: np.ndarray,
     label: np.ndarray,
