@@ -320,34 +320,19 @@ class _Lines:
         return value_at
 
 
-def _fit_boundaries(
-    k: np.ndarray,
-    t: np.ndarray,
-    label: np.ndarray,
-    inside: np.ndarray,
-    n_sl: int,
-    m: int,
-    lam: float,
-    gap: int,
-    parallel_m: float,
-    double: tuple[float, int] = (0.0, 1),
-    end_dash_drift: bool = False,
-    lam_shift: float | None = None,
-) -> _Lines:
-    """Every labelled line's t(s) (`_fit_lines_once`); with `lam_shift`, where the road as a whole
-    moves across the frame faster than a line's smoothing follows (`_common_shift`), every line is
-    fitted again to its offsets less that shift, and the shift added back."""
-    lines = _fit_lines_once(k, t, label, inside, n_sl, m, lam, gap, parallel_m, double, end_dash_drift)
-    if lam_shift is None:
-        return lines
-    shift = np.zeros(m)
+def _follow_shift(fit: Callable[[np.ndarray], _Lines], k: np.ndarray, t: np.ndarray, label: np.ndarray,
+                  inside: np.ndarray, lam_shift: float, max_double: float) -> _Lines:
+    """The lines `fit` gives for offsets t; where the road as a whole moves across the frame faster
+    than a line's smoothing follows (`_common_shift`), every line fitted again to its offsets less
+    that shift, and the shift added back (`_SHIFT_ROUNDS` rounds: the first fits follow it in part)."""
+    lines = fit(t)
+    shift = np.zeros(lines.m)
     for _ in range(_SHIFT_ROUNDS):
-        more = _common_shift(lines, k, t - shift[k], label, inside, lam_shift, double[0])
+        more = _common_shift(lines, k, t - shift[k], label, inside, lam_shift, max_double)
         if more is None:
             break
         shift = shift + more
-        lines = _fit_lines_once(k, t - shift[k], label, inside, n_sl, m, lam, gap, parallel_m, double,
-                                end_dash_drift)
+        lines = fit(t - shift[k])
     if not shift.any():
         return lines
     for b in range(len(lines.t)):
@@ -432,7 +417,7 @@ def _common_shift(lines: _Lines, k: np.ndarray, t: np.ndarray, label: np.ndarray
     return shift
 
 
-def _fit_lines_once(
+def _fit_boundaries(
     k: np.ndarray,
     t: np.ndarray,
     label: np.ndarray,
@@ -444,12 +429,18 @@ def _fit_lines_once(
     parallel_m: float,
     double: tuple[float, int] = (0.0, 1),
     end_dash_drift: bool = False,
+    lam_shift: float | None = None,
 ) -> _Lines:
     """Every labelled line's t(s) (`_robust_curve` of its points, double lines folded onto their
     midpoint: `double` = (largest spacing, block stations), see `_fold_double_lines`), bridged across
     unobserved stretches. With `end_dash_drift` (`LanesConfig.end_dash_drift`), a line whose end dash
     was dropped is fitted again, its end dashes judged against the line continued with the lines'
-    common drift (`_common_drift`)."""
+    common drift (`_common_drift`). With `lam_shift`, lane shifts are followed (`_follow_shift`)."""
+    if lam_shift is not None:
+        def fit(offsets: np.ndarray) -> _Lines:
+            return _fit_boundaries(k, offsets, label, inside, n_sl, m, lam, gap, parallel_m, double, end_dash_drift)
+
+        return _follow_shift(fit, k, t, label, inside, lam_shift, double[0])
     support = np.zeros(n_sl)
     use = (label >= 0) & inside
     order = np.argsort(label[use], kind="stable")
